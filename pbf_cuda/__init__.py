@@ -1,0 +1,12 @@
+"""cloudpbf particle solver: Position Based Fluids clouds on CUDA and on the CPU.
+
+The compiled module `pbf_cuda._core` holds both backends built from one C++
+source; this package holds the Python API around it.
+"""
+from .scene import Scene, SceneError, list_scenes, load_scene, scene_from_dict
+from .simulation import InstabilityError, Simulation, available_backends
+
+__all__ = [
+    "Scene", "SceneError", "list_scenes", "load_scene", "scene_from_dict",
+    "Simulation", "InstabilityError", "available_backends",
+]

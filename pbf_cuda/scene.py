@@ -1,0 +1,415 @@
+"""Scene files: TOML in, validated parameters out.
+
+Every parameter of a run is declared once here, with its unit and allowed
+range.  A scene file names only what differs from the defaults.  Invalid input
+raises :class:`SceneError` naming the field, the value and the allowed range.
+
+Units are SI: metres, seconds, kelvin, kilograms, kg/kg for vapor and cloud
+mixing ratios.  ``y`` is up (the paper's unit vector **j**).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "SceneError",
+    "Scene",
+    "Domain",
+    "Particles",
+    "Time",
+    "PBF",
+    "Atmosphere",
+    "Smoothing",
+    "Adaptive",
+    "Wave",
+    "load_scene",
+    "scene_from_dict",
+    "SCENE_DIR",
+    "list_scenes",
+]
+
+SCENE_DIR = Path(__file__).resolve().parent.parent / "bench" / "scenes"
+
+BOUNDARY_KINDS = ("periodic", "wall")
+SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
+VAPOR_PROFILES = ("relative", "uniform")
+
+
+class SceneError(ValueError):
+    """A scene file or parameter set is invalid. The message names the field."""
+
+
+def _spec(default, lo=None, hi=None, unit="", doc="", choices=None, length=None):
+    """Declare a field: default, inclusive range [lo, hi], unit, meaning."""
+    return field(
+        default_factory=(lambda d=default: copy.deepcopy(d)),
+        metadata=dict(lo=lo, hi=hi, unit=unit, doc=doc, choices=choices, length=length),
+    )
+
+
+@dataclass
+class Domain:
+    size: list = _spec([3200.0, 3200.0, 3200.0], 1e-3, 1e6, "m",
+                       "box edge lengths along x, y (up), z", length=3)
+    boundary: list = _spec(["periodic", "wall", "periodic"], unit="",
+                           doc="per axis: 'periodic' (minimum image) or 'wall' (boundary particles, eq. 18)",
+                           choices=BOUNDARY_KINDS, length=3)
+
+
+@dataclass
+class Particles:
+    spacing: float = _spec(100.0, 1e-4, 1e5, "m", "initial lattice spacing d of level-0 particles")
+    kernel_ratio: float = _spec(2.0, 1.2, 4.0, "", "kernel radius h0 / spacing d")
+    rest_density: float = _spec(1.0, 1e-6, 1e5, "kg/m^3", "PBF rest density rho0")
+    fill_min: list = _spec(None, -1e6, 1e6, "m", "lower corner of the filled region (default: domain)", length=3)
+    fill_max: list = _spec(None, -1e6, 1e6, "m", "upper corner of the filled region (default: domain)", length=3)
+    max_speed: float = _spec(0.0, 0.0, 1e3, "m/s", "initial speed, random direction (section 5)")
+    seed: int = _spec(0, 0, 2**31 - 1, "", "random seed for initial velocities")
+
+
+@dataclass
+class Time:
+    dt: float = _spec(2.0, 1e-6, 1e3, "s", "time step")
+    steps: int = _spec(400, 1, 10**7, "", "default number of steps of a run")
+    snapshot_every: int = _spec(50, 1, 10**7, "", "steps between saved snapshots")
+    check_every: int = _spec(1, 1, 10**6, "", "steps between NaN / instability checks")
+
+
+@dataclass
+class PBF:
+    iterations: int = _spec(4, 1, 200, "", "constraint iterations per step")
+    relaxation: float = _spec(1e-2, 0.0, 1e3, "",
+                              "constraint relaxation epsilon relative to a full neighbourhood's sum |grad C|^2")
+    unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces)")
+    scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")
+    scorr_n: int = _spec(4, 1, 8, "", "tensile s_corr exponent n")
+    scorr_dq: float = _spec(0.2, 0.0, 0.99, "", "tensile s_corr reference distance dq / h")
+    xsph: float = _spec(0.01, 0.0, 1.0, "", "XSPH viscosity c")
+    vorticity: float = _spec(0.0, 0.0, 1e4, "m/s", "vorticity confinement epsilon")
+    gravity: list = _spec([0.0, 0.0, 0.0], -1e3, 1e3, "m/s^2", "constant body acceleration", length=3)
+    max_velocity: float = _spec(1e3, 1e-6, 1e9, "m/s", "a particle faster than this stops the run as unstable")
+    max_density_error: float = _spec(10.0, 1e-6, 1e6, "", "mean |rho/rho0 - 1| above this stops the run as unstable")
+
+
+@dataclass
+class Atmosphere:
+    """Cloud physics of section 4. Present in a scene file => thermodynamics on."""
+    ground_temperature: float = _spec(300.0, 150.0, 400.0, "K", "environment temperature T0 at y = 0")
+    lapse_rate: float = _spec(6.5e-3, -0.05, 0.05, "K/m", "environment lapse rate: T0(y) = T_ground - lapse_rate*y")
+    initial_vapor_ratio: float = _spec(0.5, 0.0, 2.0, "", "k_v of section 5: v = k_v A exp(B/(T+C))")
+    vapor_profile: str = _spec("relative", choices=VAPOR_PROFILES,
+                               doc="'relative': k_v times saturation at T0(y); 'uniform': k_v times saturation at the ground")
+    buoyancy: float = _spec(9.81, 0.0, 1e3, "m/s^2", "k_b of eq. 6")
+    cloud_gravity: float = _spec(9.81, 0.0, 1e4, "m/s^2 per kg/kg", "k_g of eq. 6")
+    dry_lapse_rate: float = _spec(9.8e-3, 0.0, 0.1, "K/m", "Gamma_d of eq. 7")
+    latent_heat: float = _spec(2489.0, 0.0, 1e5, "K", "Q = L/c_p of eq. 11")
+    phase_rate: float = _spec(0.5, 0.0, 1e6, "1/s", "alpha of eq. 9")
+    saturation_a: float = _spec(1.795e5, 1e-12, 1e12, "kg/kg", "A of eq. 10")
+    saturation_b: float = _spec(-4302.6, -1e6, 1e6, "K", "B of eq. 10")
+    saturation_c: float = _spec(-29.65, -1e4, 1e4, "K", "C of eq. 10")
+    heating_rate: float = _spec(0.05, 0.0, 100.0, "K/s", "S_e of eq. 5")
+    heating_depth: float = _spec(100.0, 0.0, 1e5, "m", "particles below this height are heated")
+    noise_frequency: float = _spec(1.0 / 800.0, 0.0, 1e3, "1/m", "spatial frequency of the simplex heating pattern")
+    noise_amplitude: float = _spec(1.0, 0.0, 10.0, "", "S = S_e * max(0, 1 + amplitude * noise(x f, z f))")
+    noise_offset: list = _spec([0.0, 0.0], -1e6, 1e6, "", "shift of the noise pattern (noise units); seeds vary it",
+                               length=2)
+
+
+@dataclass
+class Smoothing:
+    kappa: float = _spec(0.1, 0.0, 1.0, "", "kappa of eq. 17b; 0 disables smoothing and its cost")
+    fields: list = _spec(["temperature"], doc="scalar fields smoothed with eq. 12-17", choices=SMOOTHABLE_FIELDS)
+    epsilon: float = _spec(0.01, 1e-8, 1.0, "", "epsilon of eq. 13 relative to h^2")
+
+
+@dataclass
+class Adaptive:
+    enabled: bool = _spec(False, doc="split and merge particles (section 5.2)")
+    max_level: int = _spec(3, 1, 12, "", "finest level; h_l = h0 2^(-l/3), m_l = m0 2^(-l)")
+    k_p: float = _spec(1.0, 1e-9, 1e9, "", "k_p of eq. 20")
+    k_c: float = _spec(2000.0, 0.0, 1e9, "1/(kg/kg)", "k_c of eq. 20")
+    split_threshold: float = _spec(0.3, 0.0, 1e9, "", "split when E > this (alpha)")
+    merge_threshold: float = _spec(0.05, 0.0, 1e9, "", "merge when E < this (beta)")
+    capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
+    min_distance: float = _spec(0.35, 0.0, 2.0, "",
+                                "no particle within this times the child's kernel radius of a new particle")
+
+
+@dataclass
+class Wave:
+    """Optional initial internal gravity wave (stream function psi = A sin(kx x) sin(ky y))."""
+    amplitude: float = _spec(0.0, 0.0, 1e3, "m/s", "peak vertical velocity of the initial mode")
+    modes_x: int = _spec(1, 1, 64, "", "horizontal wavenumber in wavelengths per domain width")
+    modes_y: int = _spec(1, 1, 64, "", "vertical wavenumber in half-wavelengths per domain height")
+
+
+SECTIONS = {
+    "domain": Domain,
+    "particles": Particles,
+    "time": Time,
+    "pbf": PBF,
+    "atmosphere": Atmosphere,
+    "smoothing": Smoothing,
+    "adaptive": Adaptive,
+    "wave": Wave,
+}
+OPTIONAL_SECTIONS = ("atmosphere", "wave")
+
+
+@dataclass
+class Scene:
+    name: str = "unnamed"
+    description: str = ""
+    domain: Domain = field(default_factory=Domain)
+    particles: Particles = field(default_factory=Particles)
+    time: Time = field(default_factory=Time)
+    pbf: PBF = field(default_factory=PBF)
+    atmosphere: Atmosphere | None = None
+    smoothing: Smoothing = field(default_factory=Smoothing)
+    adaptive: Adaptive = field(default_factory=Adaptive)
+    wave: Wave | None = None
+
+    # ---- derived quantities (all SI) -------------------------------------------------
+    @property
+    def kernel_radius(self) -> float:
+        """h0 in m: kernel radius of level-0 particles (the largest)."""
+        return self.particles.kernel_ratio * self.particles.spacing
+
+    @property
+    def thermodynamics(self) -> bool:
+        return self.atmosphere is not None
+
+    @property
+    def smoothing_active(self) -> bool:
+        return self.thermodynamics and self.smoothing.kappa > 0.0 and len(self.smoothing.fields) > 0
+
+    def fill_box(self) -> tuple[list, list]:
+        lo = self.particles.fill_min if self.particles.fill_min is not None else [0.0, 0.0, 0.0]
+        hi = self.particles.fill_max if self.particles.fill_max is not None else list(self.domain.size)
+        return list(lo), list(hi)
+
+    def lattice_shape(self) -> tuple[int, int, int]:
+        lo, hi = self.fill_box()
+        d = self.particles.spacing
+        return tuple(max(0, int(math.floor((hi[a] - lo[a]) / d + 1e-6))) for a in range(3))
+
+    def estimated_particles(self) -> int:
+        nx, ny, nz = self.lattice_shape()
+        return nx * ny * nz
+
+    def environment_temperature(self, y):
+        """T0(y) in K, linear from the ground (section 4)."""
+        a = self.atmosphere
+        return a.ground_temperature - a.lapse_rate * y
+
+    def saturation(self, temperature):
+        """A exp(B/(T+C)) in kg/kg (eq. 10 without the total-water cap)."""
+        import numpy as np
+        a = self.atmosphere
+        return a.saturation_a * np.exp(a.saturation_b / (np.asarray(temperature) + a.saturation_c))
+
+    # ---- transformations ---------------------------------------------------------------
+    def to_dict(self) -> dict:
+        out = {"scene": {"name": self.name, "description": self.description}}
+        for key in SECTIONS:
+            value = getattr(self, key)
+            if value is not None:
+                out[key] = dataclasses.asdict(value)
+        return out
+
+    def config_hash(self) -> str:
+        """Stable hash of every parameter (hex, 16 chars)."""
+        blob = json.dumps(self.to_dict(), sort_keys=True, default=float).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+    def replace(self, **overrides) -> "Scene":
+        """A copy with dotted overrides, e.g. replace(**{"pbf.iterations": 8}). Validated."""
+        data = self.to_dict()
+        for dotted, value in overrides.items():
+            section, _, key = dotted.partition(".")
+            if not key:
+                raise SceneError(f"override '{dotted}': expected 'section.field'")
+            data.setdefault(section, {})[key] = value
+        return scene_from_dict(data, source=f"{self.name} (overridden)")
+
+    def with_spacing(self, spacing: float) -> "Scene":
+        return self.replace(**{"particles.spacing": float(spacing)})
+
+    def with_particle_count(self, target: int) -> "Scene":
+        """Rescale the lattice spacing so the initial particle count is about `target`."""
+        lo, hi = self.fill_box()
+        volume = float(abs((hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])))
+        spacing = (volume / max(int(target), 1)) ** (1.0 / 3.0)
+        return self.with_spacing(spacing)
+
+
+def _check_value(where: str, value: Any, meta: dict, default: Any):
+    lo, hi, choices, length = meta["lo"], meta["hi"], meta["choices"], meta["length"]
+    unit = f" {meta['unit']}" if meta["unit"] else ""
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise SceneError(f"{where} = {value!r}: expected true or false")
+        return value
+    if isinstance(default, str) or (choices and not isinstance(default, list)):
+        if not isinstance(value, str) or (choices and value not in choices):
+            raise SceneError(f"{where} = {value!r}: allowed values are {', '.join(choices)}")
+        return value
+    if isinstance(default, list) or length is not None:
+        if not isinstance(value, list) or (length is not None and len(value) != length):
+            n = f"{length} " if length else ""
+            raise SceneError(f"{where} = {value!r}: expected a list of {n}values")
+        if choices:
+            for item in value:
+                if item not in choices:
+                    raise SceneError(f"{where} = {value!r}: each entry must be one of {', '.join(choices)}")
+            return list(value)
+        return [_check_number(f"{where}[{i}]", v, lo, hi, unit, float) for i, v in enumerate(value)]
+    kind = int if isinstance(default, int) else float
+    return _check_number(where, value, lo, hi, unit, kind)
+
+
+def _check_number(where, value, lo, hi, unit, kind):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{where} = {value!r}: expected a number in [{lo}, {hi}]{unit}")
+    if kind is int and (not float(value).is_integer()):
+        raise SceneError(f"{where} = {value!r}: expected an integer in [{lo}, {hi}]")
+    value = kind(value)
+    if not math.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise SceneError(f"{where} = {value!r} is out of range: allowed [{lo}, {hi}]{unit}")
+    return value
+
+
+def _build_section(name: str, cls, data: dict, source: str):
+    if not isinstance(data, dict):
+        raise SceneError(f"{source}: [{name}] must be a table")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise SceneError(f"{source}: unknown field {name}.{unknown[0]}; known fields: {', '.join(known)}")
+    obj = cls()
+    for key, value in data.items():
+        f = known[key]
+        default = getattr(obj, key)
+        if value is None:
+            continue
+        if default is None:  # optional list fields (fill_min/fill_max)
+            default = [0.0, 0.0, 0.0]
+        setattr(obj, key, _check_value(f"{source}: {name}.{key}", value, f.metadata, default))
+    return obj
+
+
+def _cross_checks(scene: Scene, source: str):
+    d = scene.particles.spacing
+    h = scene.kernel_radius
+    size = scene.domain.size
+    for axis, name in enumerate("xyz"):
+        if scene.domain.boundary[axis] == "periodic" and size[axis] < 3.0 * h:
+            raise SceneError(
+                f"{source}: domain.size[{axis}] = {size[axis]} m with a periodic {name} axis must be >= 3 kernel radii "
+                f"({3.0 * h:g} m = 3 * kernel_ratio * spacing)")
+        if size[axis] < d:
+            raise SceneError(f"{source}: domain.size[{axis}] = {size[axis]} m is smaller than particles.spacing = {d} m")
+    lo, hi = scene.fill_box()
+    for axis in range(3):
+        if not (0.0 <= lo[axis] < hi[axis] <= size[axis] + 1e-9):
+            raise SceneError(
+                f"{source}: particles.fill_min/fill_max along axis {axis} = [{lo[axis]}, {hi[axis]}] must satisfy "
+                f"0 <= fill_min < fill_max <= domain.size ({size[axis]} m)")
+    if scene.estimated_particles() < 1:
+        raise SceneError(f"{source}: the filled region holds no particle at spacing {d} m")
+    if scene.adaptive.enabled:
+        if scene.adaptive.merge_threshold >= scene.adaptive.split_threshold:
+            raise SceneError(
+                f"{source}: adaptive.merge_threshold = {scene.adaptive.merge_threshold} must be below "
+                f"adaptive.split_threshold = {scene.adaptive.split_threshold}")
+        if scene.atmosphere is None:
+            raise SceneError(f"{source}: adaptive.enabled needs an [atmosphere] section (the shape energy uses cloud w)")
+    if scene.atmosphere is not None:
+        a = scene.atmosphere
+        for y in (0.0, size[1]):
+            t = a.ground_temperature - a.lapse_rate * y
+            if t + a.saturation_c <= 0.0 or t < 100.0:
+                raise SceneError(
+                    f"{source}: atmosphere.lapse_rate = {a.lapse_rate} K/m gives T0 = {t:.1f} K at y = {y} m, "
+                    f"outside the saturation formula's range (T + C > 0, T >= 100 K)")
+    if scene.wave is not None and scene.domain.boundary[1] != "wall":
+        raise SceneError(f"{source}: [wave] needs domain.boundary[1] = 'wall'")
+
+
+def scene_from_dict(data: dict, source: str = "scene") -> Scene:
+    """Validate a nested dict (as read from TOML) into a Scene."""
+    if not isinstance(data, dict):
+        raise SceneError(f"{source}: expected a table at the top level")
+    allowed = {"scene", *SECTIONS}
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise SceneError(f"{source}: unknown section [{unknown[0]}]; known sections: {', '.join(sorted(allowed))}")
+    head = data.get("scene", {})
+    scene = Scene(name=str(head.get("name", source)), description=str(head.get("description", "")))
+    extra = set(head) - {"name", "description", "extends"}
+    if extra:
+        raise SceneError(f"{source}: unknown field scene.{sorted(extra)[0]}; known fields: name, description, extends")
+    for key, cls in SECTIONS.items():
+        if key in data:
+            setattr(scene, key, _build_section(key, cls, data[key], source))
+    _cross_checks(scene, source)
+    return scene
+
+
+def list_scenes() -> list[str]:
+    return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _resolve_path(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    if not path.suffix and not path.exists():
+        path = SCENE_DIR / f"{name_or_path}.toml"
+    if not path.exists():
+        raise SceneError(f"scene '{name_or_path}' not found; shipped scenes: {', '.join(list_scenes())}")
+    return path
+
+
+def read_scene_dict(name_or_path: str | Path, _seen: tuple = ()) -> dict:
+    """The scene file as a dict, with `scene.extends = "other"` resolved (other's values, overridden)."""
+    path = _resolve_path(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from None
+    parent = data.get("scene", {}).get("extends")
+    if parent is not None:
+        if not isinstance(parent, str):
+            raise SceneError(f"{path.stem}: scene.extends = {parent!r}: expected a scene name")
+        if parent in _seen:
+            raise SceneError(f"{path.stem}: scene.extends forms a cycle: {' -> '.join(_seen + (parent,))}")
+        base = read_scene_dict(parent, _seen + (path.stem,))
+        base.get("scene", {}).pop("description", None)
+        data = _merge(base, data)
+    data.get("scene", {}).pop("extends", None)
+    return data
+
+
+def load_scene(name_or_path: str | Path, **overrides) -> Scene:
+    """Load a scene by name (bench/scenes/NAME.toml) or path, apply dotted overrides."""
+    path = _resolve_path(name_or_path)
+    data = read_scene_dict(path)
+    scene = scene_from_dict(data, source=path.stem)
+    return scene.replace(**overrides) if overrides else scene

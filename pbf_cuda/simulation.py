@@ -1,0 +1,305 @@
+"""Python API of the particle solver.
+
+    >>> from pbf_cuda import Simulation
+    >>> sim = Simulation("dam_break", backend="auto")
+    >>> sim.step(100)
+    >>> sim.state()["position"].shape
+    (12000, 3)
+    >>> sim.timings()["pbf"]["mean_ms"]
+
+State arrays are structure-of-arrays on the backend's device; :meth:`state`
+copies them to numpy, :meth:`device_arrays` gives zero-copy DLPack views.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from . import initial_state
+from .kernels import lattice_kernel_sum, reference_gradient_norm2
+from .noise import noise_offset_for_seed
+from .scene import Scene, SceneError, load_scene, scene_from_dict
+
+__all__ = ["Simulation", "InstabilityError", "available_backends"]
+
+PHASES = ("pbf", "neighbors", "solver", "smoothing", "cloud_dynamics", "splitting", "merging")
+CHECKPOINT_VERSION = 1
+
+
+class InstabilityError(RuntimeError):
+    """The run went unstable: NaN/Inf, a velocity or a density error over its bound.
+
+    Attributes: ``step`` (the step that produced it), ``reason``, ``particles``
+    (ids of offending particles, at most 16), ``state_step`` (the last step whose
+    state passed the check; the caller's last checkpoint is at or before it).
+    """
+
+    def __init__(self, step: int, reason: str, particles, last_good_step: int):
+        self.step = int(step)
+        self.reason = reason
+        self.particles = [int(p) for p in particles]
+        self.last_good_step = int(last_good_step)
+        ids = ", ".join(map(str, self.particles[:16])) or "none identified"
+        super().__init__(f"unstable at step {self.step}: {reason}; particles (ids): {ids}; "
+                         f"last good step {self.last_good_step}")
+
+
+def _core():
+    from . import _core as core  # compiled module
+    return core
+
+
+def available_backends() -> list[str]:
+    """Backends usable on this machine: 'cpu' always, 'cuda' when built and a device exists."""
+    core = _core()
+    out = ["cpu"]
+    if core.cuda_built() and core.cuda_device_count() > 0:
+        out.append("cuda")
+    return out
+
+
+def _resolve_backend(backend: str) -> str:
+    backends = available_backends()
+    if backend == "auto":
+        return "cuda" if "cuda" in backends else "cpu"
+    if backend not in ("cpu", "cuda"):
+        raise ValueError(f"backend = {backend!r}: allowed 'auto', 'cpu', 'cuda'")
+    if backend not in backends:
+        core = _core()
+        why = "the module was built without CUDA" if not core.cuda_built() else "no CUDA device is visible"
+        raise RuntimeError(f"backend 'cuda' is not available: {why}")
+    return backend
+
+
+def build_params(scene: Scene, n_fluid: int, capacity: int):
+    """Flatten a Scene into the solver's parameter struct (derived constants computed here)."""
+    core = _core()
+    p = core.Params()
+    d = scene.particles.spacing
+    h0 = scene.kernel_radius
+    rho0 = scene.particles.rest_density
+    # m0 such that a full lattice neighbourhood has density exactly rho0 (eq. 1).
+    m0 = rho0 / lattice_kernel_sum(h0, d)
+    p.domain = list(scene.domain.size)
+    p.periodic = [b == "periodic" for b in scene.domain.boundary]
+    p.spacing = d
+    p.h0 = h0
+    p.rest_density = rho0
+    p.mass0 = m0
+    p.dt = scene.time.dt
+    pb = scene.pbf
+    p.iterations = pb.iterations
+    grad2 = reference_gradient_norm2(h0, d, m0, rho0)   # sum_k |grad_k C_i|^2 / m_k of a full lattice
+    p.relaxation = pb.relaxation * grad2
+    p.lambda_ref = 1.0 / grad2                          # lambda of a unit constraint violation
+    p.unilateral = pb.unilateral
+    p.scorr_k = pb.scorr_k
+    p.scorr_n = pb.scorr_n
+    p.scorr_dq = pb.scorr_dq
+    p.xsph = pb.xsph
+    p.vorticity = pb.vorticity
+    p.gravity = list(pb.gravity)
+    p.max_velocity = pb.max_velocity
+    p.max_density_error = pb.max_density_error
+    p.check_every = scene.time.check_every
+    p.thermodynamics = scene.thermodynamics
+    if scene.thermodynamics:
+        a = scene.atmosphere
+        p.ground_temperature = a.ground_temperature
+        p.lapse_rate = a.lapse_rate
+        p.buoyancy = a.buoyancy
+        p.cloud_gravity = a.cloud_gravity
+        p.dry_lapse_rate = a.dry_lapse_rate
+        p.latent_heat = a.latent_heat
+        p.phase_rate = a.phase_rate
+        p.saturation = [a.saturation_a, a.saturation_b, a.saturation_c]
+        p.heating_rate = a.heating_rate
+        p.heating_depth = a.heating_depth
+        p.noise_frequency = a.noise_frequency
+        p.noise_amplitude = a.noise_amplitude
+        p.noise_offset = list(a.noise_offset)
+        sm = scene.smoothing
+        p.kappa = sm.kappa if scene.smoothing_active else 0.0
+        p.smooth_fields = [f in sm.fields for f in ("temperature", "vapor", "cloud")]
+        p.smoothing_epsilon = sm.epsilon
+    ad = scene.adaptive
+    p.adaptive = ad.enabled
+    p.max_level = ad.max_level if ad.enabled else 0
+    p.k_p = ad.k_p
+    p.k_c = ad.k_c
+    p.split_threshold = ad.split_threshold
+    p.merge_threshold = ad.merge_threshold
+    p.min_distance = ad.min_distance
+    p.capacity = capacity
+    return p
+
+
+class Simulation:
+    """One particle simulation of a scene on one backend ('cpu' or 'cuda')."""
+
+    def __init__(self, scene: Scene | str | Path, backend: str = "auto", seed: int | None = None,
+                 _state: dict | None = None):
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
+        if seed is not None:
+            scene = scene.replace(**{"particles.seed": int(seed),
+                                     **({"atmosphere.noise_offset": noise_offset_for_seed(seed)}
+                                        if scene.thermodynamics else {})})
+        self.scene = scene
+        self.backend = _resolve_backend(backend)
+        fluid = _state["fluid"] if _state else initial_state.fluid_particles(scene)
+        boundary = _state["boundary"] if _state else initial_state.boundary_particles(scene)
+        n = len(fluid["id"])
+        capacity = n
+        if scene.adaptive.enabled:
+            capacity = max(n, int(math.ceil(n * scene.adaptive.capacity)))
+        self.capacity = capacity
+        self._params = build_params(scene, n, capacity)
+        core = _core()
+        try:
+            self._solver = core.Solver(self._params, self.backend)
+        except MemoryError as exc:
+            raise MemoryError(f"{self.backend}: not enough memory for {capacity} particle slots "
+                              f"({scene.name}); lower the particle count or adaptive.capacity") from exc
+        self._solver.set_boundary(boundary["position"], boundary["temperature"], boundary["vapor"])
+        self._solver.set_fluid(fluid["position"], fluid["velocity"], fluid["temperature"], fluid["vapor"],
+                               fluid["cloud"], fluid["mass"], fluid["id"])
+        if _state:
+            self._solver.set_clock(int(_state["step"]), float(_state["time"]), int(_state["next_id"]))
+
+    # ---- stepping ----------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        """Advance n steps. Raises InstabilityError (the state then holds the failing step)."""
+        if n < 0:
+            raise ValueError(f"n = {n}: must be >= 0")
+        try:
+            self._solver.step(int(n))
+        except RuntimeError as exc:
+            msg = str(exc)
+            if msg.startswith("unstable|"):
+                _, step, last_good, reason, ids = msg.split("|", 4)
+                raise InstabilityError(int(step), reason, [int(i) for i in ids.split(",") if i],
+                                       int(last_good)) from None
+            raise
+
+    @property
+    def step_count(self) -> int:
+        return self._solver.step_count()
+
+    @property
+    def time(self) -> float:
+        """Simulated time in s."""
+        return self._solver.time()
+
+    @property
+    def n_particles(self) -> int:
+        return self._solver.size()
+
+    # ---- state -------------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """Host copies: position (N,3) m, velocity (N,3) m/s, temperature K, vapor and cloud kg/kg,
+        mass kg, level, kernel_radius m, id. Empty thermodynamic arrays in plain-fluid scenes."""
+        s = self._solver
+        pos4 = s.get_float4("position")
+        vel4 = s.get_float4("velocity")
+        out = {
+            "position": pos4[:, :3].copy(),
+            "mass": pos4[:, 3].copy(),
+            "velocity": vel4[:, :3].copy(),
+            "id": s.get_uint("id"),
+        }
+        if self.scene.thermodynamics:
+            out["temperature"] = s.get_float("temperature")
+            out["vapor"] = s.get_float("vapor")
+            out["cloud"] = s.get_float("cloud")
+        m0 = self._params.mass0
+        level = np.rint(-np.log2(out["mass"] / m0)).astype(np.int32) if len(out["mass"]) else np.zeros(0, np.int32)
+        out["level"] = level
+        out["kernel_radius"] = (self._params.h0 * 2.0 ** (-level / 3.0)).astype(np.float32)
+        return out
+
+    def boundary_state(self) -> dict[str, np.ndarray]:
+        pos4 = self._solver.get_float4("boundary_position")
+        out = {"position": pos4[:, :3].copy(), "mass": pos4[:, 3].copy()}
+        if self.scene.thermodynamics:
+            out["temperature"] = self._solver.get_float("boundary_temperature")
+        return out
+
+    def device_arrays(self) -> dict:
+        """Zero-copy views of the solver's arrays (DLPack; numpy on CPU, CUDA memory on the GPU).
+        Valid until the next step() (which re-sorts them)."""
+        names = ["position", "velocity", "id"]
+        if self.scene.thermodynamics:
+            names += ["temperature", "vapor", "cloud"]
+        return {n: self._solver.view(n) for n in names}
+
+    def timings(self) -> dict[str, dict]:
+        """Per-phase wall time on the device (CUDA events) or host (steady clock), in ms.
+        Only phases that ran appear."""
+        out = {}
+        for name, total, count in self._solver.timings():
+            if count > 0:
+                out[name] = {"total_ms": total, "count": count, "mean_ms": total / count}
+        return out
+
+    def reset_timings(self) -> None:
+        self._solver.reset_timings()
+
+    def stats(self) -> dict:
+        """Diagnostics of the last step: density error, extents, speed, adaptive counts."""
+        st = dict(self._solver.stats())
+        st["backend"] = self.backend
+        return st
+
+    # ---- checkpoints -------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write a checkpoint (npz) atomically; `Simulation.load` restores it bit-exactly."""
+        path = Path(path)
+        st = self.state()
+        bd = self.boundary_state()
+        s = self._solver
+        arrays = {f"fluid_{k}": v for k, v in st.items() if k not in ("level", "kernel_radius")}
+        arrays.update({f"boundary_{k}": v for k, v in bd.items()})
+        if self.scene.thermodynamics:
+            arrays["boundary_vapor"] = s.get_float("boundary_vapor")
+        meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
+                "time": self.time, "next_id": s.next_id(), "backend": self.backend}
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, backend: str | None = None) -> "Simulation":
+        with np.load(Path(path)) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            if meta.get("version") != CHECKPOINT_VERSION:
+                raise ValueError(f"{path}: checkpoint version {meta.get('version')} != {CHECKPOINT_VERSION}")
+            scene = scene_from_dict(meta["scene"], source=str(path))
+            thermo = scene.thermodynamics
+            n = len(z["fluid_id"])
+            zeros = np.zeros(n, np.float32)
+            fluid = {
+                "position": z["fluid_position"], "velocity": z["fluid_velocity"], "mass": z["fluid_mass"],
+                "id": z["fluid_id"],
+                "temperature": z["fluid_temperature"] if thermo else zeros,
+                "vapor": z["fluid_vapor"] if thermo else zeros,
+                "cloud": z["fluid_cloud"] if thermo else zeros,
+            }
+            nb = len(z["boundary_position"])
+            boundary = {
+                "position": z["boundary_position"],
+                "temperature": z["boundary_temperature"] if thermo else np.zeros(nb, np.float32),
+                "vapor": z["boundary_vapor"] if thermo else np.zeros(nb, np.float32),
+            }
+        state = {"fluid": fluid, "boundary": boundary, "step": meta["step"], "time": meta["time"],
+                 "next_id": meta["next_id"]}
+        return cls(scene, backend=backend or meta["backend"], _state=state)
