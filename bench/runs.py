@@ -1,0 +1,778 @@
+"""The run cache: one simulation run is one directory, named by a hash of what decides its result.
+
+A :class:`RunSpec` says what to run (solver, scene, backend, steps, seed, options).  Its key is the
+sha256 of the scene's parameters (its description aside), the solver, the resolved backend, the
+step count, the seed, the run options and the *code version*: a hash of the source files the result
+depends on (see :data:`CODE_SOURCES`), so editing the solver, the grid baseline or the statistics
+invalidates earlier runs of that solver.  The compiled module itself is not hashed: rebuild it after
+editing ``pbf_cuda/csrc``.
+
+``execute(spec)`` returns the stored result when ``result.json`` exists (no work at all), resumes
+from ``checkpoint.npz`` when an earlier attempt was interrupted, and otherwise runs from step 0.
+Layout of ``ROOT/<solver>-<scene>-<key16>/``::
+
+    config.json        the spec and its identity (everything hashed into the key)
+    log.txt            start, resume, checkpoints, instability, finish (appended)
+    timings.csv        phase,total_ms,count,mean_ms (wall time per phase after the warm-up steps)
+    stats.parquet      one row per diagnostic step: bench.statistics diagnostics (+ solver stats())
+    profiles.parquet   vertical profiles per diagnostic step (long format), when the statistics give them
+    steps.csv          solver stats() after every step (record_steps runs, e.g. dam_break's front x_max)
+    snapshots/step_NNNNNN.npz   a few full states (particles) or fields (grid), the final one included
+    checkpoint.npz     the latest good checkpoint (particle runs), with progress.json beside it
+    partial/           rows gathered so far by an unfinished run (discarded up to its checkpoint on resume)
+    result.json        written last, atomically: marks the run complete (stable or not)
+
+An unstable run (NaN/Inf, velocity or density-error bound, particles escaping through a wall) is
+complete too: ``result.json`` holds ``stable: false`` with the reason, the step and the particle
+ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
+file is written to a temporary name and moved into place with ``os.replace``.
+
+The default root is ``runs/`` in the repository, or ``$CLOUDPBF_RUNS``.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import fcntl
+import functools
+import hashlib
+import json
+import math
+import os
+import re
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from pbf_cuda.scene import Scene
+
+__all__ = [
+    "RunSpec", "RunResult", "RunInstability", "execute", "execute_summary", "default_root", "code_version",
+    "atomic_path", "atomic_write_text", "atomic_write_json", "write_csv", "write_parquet", "ADAPTERS",
+    "REPO_ROOT", "SOLVERS",
+]
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+RUN_FORMAT = 1          # bump when the run directory layout or the loop's semantics change
+SOLVERS = ("particles", "grid")
+MAX_STEPS = 10**7
+SOURCE_SUFFIXES = (".py", ".h", ".hpp", ".cuh", ".cu", ".cpp", ".cc", ".c", ".inl")
+# Source files whose content decides a run's result, per solver (paths relative to the repository).
+CODE_SOURCES = {
+    "particles": ("pbf_cuda", "CMakeLists.txt", "bench/statistics.py"),
+    "grid": ("grid_baseline", "pbf_cuda/scene.py", "pbf_cuda/noise.py", "bench/statistics.py"),
+}
+STATS_VECTOR_AXES = "xyz"
+
+
+def default_root() -> Path:
+    """Where runs live: $CLOUDPBF_RUNS, else runs/ in the repository (gitignored)."""
+    env = os.environ.get("CLOUDPBF_RUNS")
+    return Path(env) if env else REPO_ROOT / "runs"
+
+
+# ---- atomic writes ---------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(path: str | Path):
+    """Yield a temporary path beside `path`; on success it replaces `path` in one rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+def _json_default(value):
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def atomic_write_json(path: str | Path, obj: Any, sort_keys: bool = True) -> Path:
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=_json_default) + "\n")
+
+
+def write_csv(frame, path: str | Path) -> Path:
+    """Write a pandas DataFrame as CSV atomically (no index)."""
+    with atomic_path(path) as tmp:
+        frame.to_csv(tmp, index=False)
+    return Path(path)
+
+
+def write_parquet(frame, path: str | Path) -> Path:
+    with atomic_path(path) as tmp:
+        frame.to_parquet(tmp, index=False)
+    return Path(path)
+
+
+def _save_npz(path: Path, arrays: dict) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
+# ---- code version ----------------------------------------------------------------------------
+def _source_files(entry: str) -> list[Path]:
+    path = REPO_ROOT / entry
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        return []
+    return sorted(p for p in path.rglob("*")
+                  if p.is_file() and (p.suffix in SOURCE_SUFFIXES or p.name == "CMakeLists.txt")
+                  and "__pycache__" not in p.parts)
+
+
+@functools.lru_cache(maxsize=None)
+def code_version(solver: str) -> str:
+    """sha256 (16 hex) of the source files a `solver` run depends on (CODE_SOURCES), names and contents."""
+    digest = hashlib.sha256()
+    for entry in CODE_SOURCES[solver]:
+        for path in _source_files(entry):
+            digest.update(str(path.relative_to(REPO_ROOT)).encode() + b"\0")
+            digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
+# ---- the spec ----------------------------------------------------------------------------------
+class RunInstability(RuntimeError):
+    """An instability found by the harness (particles escaping, NaN in fields or statistics).
+
+    Same fields as pbf_cuda.InstabilityError: step, reason, particles (ids), last_good_step."""
+
+    def __init__(self, step: int, reason: str, particles: Iterable[int] = (), last_good_step: int = -1):
+        self.step = int(step)
+        self.reason = reason
+        self.particles = [int(p) for p in particles]
+        self.last_good_step = int(last_good_step)
+        ids = ", ".join(map(str, self.particles[:16])) or "none identified"
+        super().__init__(f"unstable at step {self.step}: {reason}; particles (ids): {ids}")
+
+
+def _check_int(name: str, value, lo: int, hi: int, allow_none: bool = False):
+    if value is None and allow_none:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= int(value) <= hi:
+        raise ValueError(f"{name} = {value!r}: expected an integer in [{lo}, {hi}]")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to run.  Steps, snapshot and checkpoint intervals default to the scene's `time` section.
+
+    solver: 'particles' (pbf_cuda.Simulation) or 'grid' (grid_baseline.GridSimulation)
+    backend: particles 'auto' | 'cpu' | 'cuda'; the grid runs on jax's default device ('auto')
+    seed: noise/initial-velocity seed (None: the scene's own)
+    snapshot_every: steps between diagnostics rows (stats.parquet); the final step always has one
+    keep_snapshots: how many full states to store as npz (evenly spaced diagnostic steps, final included)
+    checkpoint_every: steps between checkpoints (default: snapshot_every)
+    record_steps: store solver stats() after every step in steps.csv
+    diagnostics: compute bench.statistics diagnostics (off for pure timing runs)
+    warmup_steps: timings are reset after this many steps (first-step allocations left out)
+    cells_per_spacing, resolution, dtype: grid options (see grid_baseline.GridSimulation)
+    diagnostics_resolution: deposit grid (nx, ny, nz) for particle diagnostics (None: the statistics' default)
+    """
+    solver: str
+    scene: Scene
+    backend: str = "auto"
+    steps: int | None = None
+    seed: int | None = None
+    snapshot_every: int | None = None
+    keep_snapshots: int = 3
+    checkpoint_every: int | None = None
+    record_steps: bool = False
+    diagnostics: bool = True
+    warmup_steps: int = 0
+    cells_per_spacing: float = 1.0
+    resolution: tuple | None = None
+    dtype: str | None = None
+    diagnostics_resolution: tuple | None = None
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver = {self.solver!r}: allowed {', '.join(SOLVERS)}")
+        if not isinstance(self.scene, Scene):
+            raise ValueError(f"scene = {self.scene!r}: expected a pbf_cuda.scene.Scene")
+        if self.backend not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"backend = {self.backend!r}: allowed auto, cpu, cuda")
+        _check_int("steps", self.steps, 1, MAX_STEPS, allow_none=True)
+        _check_int("seed", self.seed, 0, 2**31 - 1, allow_none=True)
+        _check_int("snapshot_every", self.snapshot_every, 1, MAX_STEPS, allow_none=True)
+        _check_int("checkpoint_every", self.checkpoint_every, 1, MAX_STEPS, allow_none=True)
+        _check_int("keep_snapshots", self.keep_snapshots, 0, 10_000)
+        _check_int("warmup_steps", self.warmup_steps, 0, MAX_STEPS)
+        if self.warmup_steps >= self.total_steps:
+            raise ValueError(f"warmup_steps = {self.warmup_steps}: must be below steps = {self.total_steps}")
+        if not (isinstance(self.cells_per_spacing, (int, float)) and 0.05 <= self.cells_per_spacing <= 64):
+            raise ValueError(f"cells_per_spacing = {self.cells_per_spacing!r}: expected a number in [0.05, 64]")
+        for name in ("resolution", "diagnostics_resolution"):
+            value = getattr(self, name)
+            if value is not None:
+                if len(value) != 3 or any(not isinstance(v, (int, np.integer)) or v < 1 for v in value):
+                    raise ValueError(f"{name} = {value!r}: expected three positive integers (nx, ny, nz)")
+                object.__setattr__(self, name, tuple(int(v) for v in value))
+        if self.dtype not in (None, "float32", "float64"):
+            raise ValueError(f"dtype = {self.dtype!r}: allowed float32, float64")
+
+    # ---- derived -----------------------------------------------------------------------------
+    @property
+    def total_steps(self) -> int:
+        return int(self.steps if self.steps is not None else self.scene.time.steps)
+
+    @property
+    def diagnostic_every(self) -> int:
+        return int(self.snapshot_every if self.snapshot_every is not None else self.scene.time.snapshot_every)
+
+    @property
+    def checkpoint_interval(self) -> int:
+        return int(self.checkpoint_every if self.checkpoint_every is not None else self.diagnostic_every)
+
+    def diagnostic_steps(self) -> list[int]:
+        """Steps that get a diagnostics row: 0, every `snapshot_every`, and the last step."""
+        if not self.diagnostics:
+            return []
+        n, every = self.total_steps, self.diagnostic_every
+        return sorted({0, n, *range(every, n, every)})
+
+    def snapshot_steps(self) -> list[int]:
+        """Steps whose full state is stored: `keep_snapshots` diagnostic steps, evenly spaced, last included."""
+        candidates = self.diagnostic_steps() or [self.total_steps]
+        k = min(self.keep_snapshots, len(candidates))
+        if k <= 0:
+            return []
+        picks = np.unique(np.rint(np.linspace(len(candidates) - 1, 0, k)).astype(int))
+        return sorted(candidates[i] for i in picks)
+
+    def options(self) -> dict:
+        """Everything but the scene, solver, backend, steps and seed that enters the key."""
+        out = {"snapshot_every": self.diagnostic_every, "keep_snapshots": self.keep_snapshots,
+               "record_steps": self.record_steps, "diagnostics": self.diagnostics,
+               "warmup_steps": self.warmup_steps,
+               "diagnostics_resolution": list(self.diagnostics_resolution) if self.diagnostics_resolution else None}
+        if self.solver == "grid":
+            out.update(cells_per_spacing=float(self.cells_per_spacing),
+                       resolution=list(self.resolution) if self.resolution else None, dtype=self.dtype)
+        return out
+
+    def identity(self) -> dict:
+        """All that is hashed into the key (the checkpoint interval is not: it does not change results)."""
+        scene = self.scene.to_dict()
+        scene["scene"] = {"name": self.scene.name}
+        return {"format": RUN_FORMAT, "solver": self.solver, "scene": scene,
+                "backend": ADAPTERS[self.solver].resolve_backend(self.backend),
+                "steps": self.total_steps, "seed": self.seed, "options": self.options(),
+                "code": ADAPTERS[self.solver].code_version()}
+
+    def key(self, identity: dict | None = None) -> str:
+        """sha256 (hex) of identity()."""
+        blob = json.dumps(identity or self.identity(), sort_keys=True, default=_json_default).encode()
+        return hashlib.sha256(blob).hexdigest()
+
+    def directory(self, root: str | Path | None = None, key: str | None = None) -> Path:
+        """ROOT/<solver>-<scene>-<key16>."""
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "_", self.scene.name)[:60] or "scene"
+        return Path(root or default_root()) / f"{self.solver}-{name}-{(key or self.key())[:16]}"
+
+    def replace(self, **changes) -> "RunSpec":
+        return dataclasses.replace(self, **changes)
+
+
+# ---- solver adapters ---------------------------------------------------------------------------
+def _flatten(values: dict) -> dict:
+    """Solver stats() as flat scalars: min_position -> min_position_x/_y/_z, level_counts -> level_0.."""
+    out = {}
+    for name, value in values.items():
+        if isinstance(value, str):
+            continue
+        if name == "level_counts":
+            for level, count in enumerate(value):
+                out[f"level_{level}"] = int(count)
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            arr = np.asarray(value).ravel()
+            labels = STATS_VECTOR_AXES if len(arr) == 3 else [str(i) for i in range(len(arr))]
+            for label, v in zip(labels, arr):
+                out[f"{name}_{label}"] = v.item()
+        else:
+            out[name] = value.item() if isinstance(value, np.generic) else value
+    return out
+
+
+def _split_diagnostics(row: dict) -> tuple[dict, dict]:
+    """Split a diagnostics dict into scalars (stats.parquet) and 1-D arrays (profiles.parquet)."""
+    scalars, profiles = {}, {}
+    for name, value in row.items():
+        if isinstance(value, (list, tuple, np.ndarray)) and np.ndim(value) >= 1:
+            profiles[name] = np.asarray(value)
+        elif isinstance(value, dict):
+            for sub, v in value.items():
+                (profiles if np.ndim(v) >= 1 else scalars)[f"{name}_{sub}"] = v
+        else:
+            scalars[name] = value.item() if isinstance(value, np.generic) else value
+    return scalars, profiles
+
+
+def _nonfinite_fields(arrays: dict) -> list[str]:
+    return [name for name, arr in arrays.items()
+            if isinstance(arr, np.ndarray) and arr.dtype.kind == "f" and not np.all(np.isfinite(arr))]
+
+
+class ParticleAdapter:
+    """pbf_cuda.Simulation behind the run loop."""
+    solver = "particles"
+    can_checkpoint = True
+
+    @staticmethod
+    def resolve_backend(backend: str) -> str:
+        if backend != "auto":
+            return backend
+        from pbf_cuda.simulation import available_backends
+        return "cuda" if "cuda" in available_backends() else "cpu"
+
+    @staticmethod
+    def code_version() -> str:
+        return code_version("particles")
+
+    @staticmethod
+    def instability_errors() -> tuple:
+        from pbf_cuda.simulation import InstabilityError
+        return (InstabilityError, RunInstability)
+
+    @staticmethod
+    def create(spec: RunSpec):
+        from pbf_cuda.simulation import Simulation
+        return Simulation(spec.scene, backend=spec.backend, seed=spec.seed)
+
+    @staticmethod
+    def load(path: Path, spec: RunSpec):
+        from pbf_cuda.simulation import Simulation
+        return Simulation.load(path, backend=ParticleAdapter.resolve_backend(spec.backend))
+
+    @staticmethod
+    def save(sim, path: Path) -> None:
+        sim.save(path)
+
+    @staticmethod
+    def state(sim) -> dict:
+        return sim.state()
+
+    @staticmethod
+    def size(sim) -> int:
+        return int(sim.n_particles)
+
+    @staticmethod
+    def step_row(sim) -> dict:
+        return _flatten(sim.stats())
+
+    @staticmethod
+    def check(sim, spec: RunSpec, row: dict | None) -> None:
+        """Raise RunInstability for NaN in stats() or particles outside a wall axis (by more than h0)."""
+        row = row if row is not None else _flatten(sim.stats())
+        step = sim.step_count
+        bad = [k for k, v in row.items() if isinstance(v, float) and not math.isfinite(v)]
+        if bad:
+            raise RunInstability(step, f"NaN/Inf in solver statistics ({', '.join(bad)})",
+                                 _nonfinite_ids(sim.state()), step - 1)
+        scene = sim.scene
+        tol = scene.kernel_radius
+        for axis, name in enumerate(STATS_VECTOR_AXES):
+            if scene.domain.boundary[axis] != "wall":
+                continue
+            lo, hi = row.get(f"min_position_{name}"), row.get(f"max_position_{name}")
+            size = scene.domain.size[axis]
+            if lo is None or hi is None or (lo >= -tol and hi <= size + tol):
+                continue
+            pos = sim.state()
+            p = pos["position"][:, axis]
+            ids = pos["id"][(p < -tol) | (p > size + tol)]
+            raise RunInstability(step, f"particles escaping the domain: {name} in [{lo:.6g}, {hi:.6g}] m, "
+                                       f"outside the walls [0, {size:g}] m", ids[:16], step - 1)
+
+    @staticmethod
+    def diagnostics(sim, spec: RunSpec, state: dict) -> dict:
+        from bench.statistics import particle_diagnostics
+        return particle_diagnostics(state, sim.scene, resolution=spec.diagnostics_resolution)
+
+
+def _nonfinite_ids(state: dict) -> list[int]:
+    mask = np.zeros(len(state["id"]), dtype=bool)
+    for name, arr in state.items():
+        if name != "id" and isinstance(arr, np.ndarray) and arr.dtype.kind == "f" and len(arr) == len(mask):
+            mask |= ~np.isfinite(arr.reshape(len(mask), -1)).all(axis=1)
+    return [int(i) for i in state["id"][mask][:16]]
+
+
+class GridAdapter:
+    """grid_baseline.GridSimulation behind the run loop (no checkpoints: a rerun starts at step 0)."""
+    solver = "grid"
+    can_checkpoint = False
+
+    @staticmethod
+    def resolve_backend(backend: str) -> str:
+        if backend != "auto":
+            return backend
+        import jax
+        return "cuda" if jax.default_backend() == "gpu" else "cpu"
+
+    @staticmethod
+    def code_version() -> str:
+        return code_version("grid")
+
+    @staticmethod
+    def instability_errors() -> tuple:
+        return (RunInstability,)
+
+    @staticmethod
+    def create(spec: RunSpec):
+        from grid_baseline import GridSimulation
+        kwargs = dict(cells_per_spacing=spec.cells_per_spacing, resolution=spec.resolution, seed=spec.seed)
+        if spec.dtype is not None:
+            kwargs["dtype"] = spec.dtype
+        return GridSimulation(spec.scene, **kwargs)
+
+    load = save = None
+
+    @staticmethod
+    def state(sim) -> dict:
+        return {k: np.asarray(v) for k, v in sim.fields().items()}
+
+    @staticmethod
+    def size(sim) -> int:
+        return int(np.prod(sim.fields()["temperature"].shape))
+
+    @staticmethod
+    def step_row(sim) -> dict:
+        return {"step": sim.step_count, "time": float(sim.time)}
+
+    @staticmethod
+    def check(sim, spec: RunSpec, row: dict | None) -> None:
+        bad = _nonfinite_fields(GridAdapter.state(sim))
+        if bad:
+            raise RunInstability(sim.step_count, f"NaN/Inf in grid fields ({', '.join(bad)})", (),
+                                 sim.step_count - 1)
+
+    @staticmethod
+    def diagnostics(sim, spec: RunSpec, state: dict) -> dict:
+        from bench.statistics import grid_diagnostics
+        return grid_diagnostics(state)
+
+
+ADAPTERS = {"particles": ParticleAdapter, "grid": GridAdapter}
+
+
+# ---- results -----------------------------------------------------------------------------------
+@dataclass
+class RunResult:
+    """A finished run (stable or not), read from its directory."""
+    path: Path
+    info: dict
+    cached: bool = False
+
+    @classmethod
+    def load(cls, path: str | Path, cached: bool = False) -> "RunResult":
+        path = Path(path)
+        return cls(path, json.loads((path / "result.json").read_text()), cached)
+
+    def __getattr__(self, name):
+        info = self.__dict__.get("info", {})
+        if name in info:
+            return info[name]
+        raise AttributeError(name)
+
+    def stats(self):
+        import pandas as pd
+        p = self.path / "stats.parquet"
+        return pd.read_parquet(p) if p.exists() else pd.DataFrame()
+
+    def profiles(self):
+        import pandas as pd
+        p = self.path / "profiles.parquet"
+        return pd.read_parquet(p) if p.exists() else pd.DataFrame()
+
+    def steps_table(self):
+        import pandas as pd
+        p = self.path / "steps.csv"
+        return pd.read_csv(p) if p.exists() else pd.DataFrame()
+
+    def timings(self) -> dict[str, dict]:
+        import pandas as pd
+        p = self.path / "timings.csv"
+        if not p.exists():
+            return {}
+        return {r["phase"]: {"total_ms": r["total_ms"], "count": int(r["count"]), "mean_ms": r["mean_ms"]}
+                for r in pd.read_csv(p).to_dict("records")}
+
+    def snapshot_paths(self) -> list[Path]:
+        return sorted((self.path / "snapshots").glob("step_*.npz"))
+
+    def snapshot(self, step: int | None = None) -> dict[str, np.ndarray]:
+        """A stored state (the last one when step is None), as a dict of numpy arrays."""
+        paths = self.snapshot_paths()
+        if step is not None:
+            paths = [p for p in paths if p.name == f"step_{step:06d}.npz"]
+        if not paths:
+            raise FileNotFoundError(f"{self.path}: no snapshot{'' if step is None else f' at step {step}'}")
+        with np.load(paths[-1]) as z:
+            return {k: z[k] for k in z.files}
+
+    def summary(self) -> dict:
+        """Small JSON-able dict (what a dask task returns)."""
+        return {**self.info, "path": str(self.path), "cached": self.cached}
+
+
+# ---- the run loop --------------------------------------------------------------------------------
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+@contextlib.contextmanager
+def _locked(directory: Path):
+    """Exclusive lock on the run directory, so two processes never run the same spec at once."""
+    with open(directory / ".lock", "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _merge_timings(base: dict, extra: dict) -> dict:
+    out = {k: dict(v) for k, v in base.items()}
+    for phase, t in extra.items():
+        cur = out.setdefault(phase, {"total_ms": 0.0, "count": 0})
+        cur["total_ms"] += float(t["total_ms"])
+        cur["count"] += int(t["count"])
+    for t in out.values():
+        t["mean_ms"] = t["total_ms"] / t["count"] if t["count"] else float("nan")
+    return out
+
+
+class _Run:
+    """One attempt at a spec inside its (locked) directory."""
+
+    def __init__(self, spec: RunSpec, identity: dict, key: str, directory: Path, quiet: bool,
+                 on_step: Callable[[int], None] | None):
+        self.spec, self.identity, self.identity_key, self.dir = spec, identity, key, directory
+        self.adapter = ADAPTERS[spec.solver]
+        self.quiet, self.on_step = quiet, on_step
+        self.partial = directory / "partial"
+
+    def log(self, message: str) -> None:
+        with open(self.dir / "log.txt", "a") as fh:
+            fh.write(f"{_now()} {message}\n")
+
+    # -- progress bookkeeping ------------------------------------------------------------------
+    def _resume(self):
+        """(sim, progress) from checkpoint.npz + progress.json when they agree, else (None, fresh)."""
+        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "max_particles": 0, "segments": 0}
+        ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
+        if not (self.adapter.can_checkpoint and ckpt.exists() and prog.exists()):
+            return None, fresh
+        progress = json.loads(prog.read_text())
+        try:
+            sim = self.adapter.load(ckpt, self.spec)
+        except Exception as exc:  # a damaged checkpoint: start over, say so
+            self.log(f"checkpoint unreadable ({exc!r}); starting from step 0")
+            return None, fresh
+        if sim.step_count != progress["step"]:
+            self.log(f"checkpoint step {sim.step_count} != progress step {progress['step']}; starting from step 0")
+            return None, fresh
+        return sim, progress
+
+    def _partial_rows(self, name: str, upto: int) -> list[dict]:
+        path = self.partial / f"{name}.json"
+        if not path.exists():
+            return []
+        return [r for r in json.loads(path.read_text()) if r["step"] <= upto]
+
+    def _checkpoint(self, sim, progress: dict) -> None:
+        for name, rows in (("stats", self.rows), ("profiles", self.profile_rows), ("steps", self.step_rows)):
+            atomic_write_json(self.partial / f"{name}.json", rows, sort_keys=False)  # keeps column order
+        self.adapter.save(sim, self.dir / "checkpoint.npz")
+        atomic_write_json(self.dir / "progress.json", progress)
+        self.log(f"checkpoint at step {progress['step']}")
+
+    # -- one diagnostics row -------------------------------------------------------------------
+    def _record(self, sim, stats_row: dict | None, snapshot: bool) -> None:
+        step = sim.step_count
+        state = self.adapter.state(sim)
+        bad = _nonfinite_fields(state)
+        if bad:
+            ids = _nonfinite_ids(state) if "id" in state else []
+            raise RunInstability(step, f"NaN/Inf in {', '.join(bad)}", ids, step - 1)
+        if snapshot:
+            _save_npz(self.dir / "snapshots" / f"step_{step:06d}.npz",
+                      {**state, "step": np.int64(step), "time": np.float64(sim.time)})
+        if not self.spec.diagnostics:
+            return
+        scalars, profiles = _split_diagnostics(self.adapter.diagnostics(sim, self.spec, state))
+        row = {**scalars, **(stats_row or {}), "step": step, "time": float(sim.time)}
+        self.rows.append(row)
+        if profiles:
+            length = {len(v) for v in profiles.values()}
+            if len(length) != 1:
+                raise ValueError(f"diagnostic profiles of different lengths: "
+                                 f"{ {k: len(v) for k, v in profiles.items()} }")
+            for i in range(length.pop()):
+                self.profile_rows.append({"step": step, "time": float(sim.time),
+                                          **{k: v[i].item() for k, v in profiles.items()}})
+
+    # -- the loop --------------------------------------------------------------------------------
+    def run(self) -> RunResult:
+        spec = self.spec
+        started = time.perf_counter()
+        atomic_write_json(self.dir / "config.json", {
+            "identity": self.identity, "key": self.identity_key,
+            "checkpoint_every": spec.checkpoint_interval, "diagnostic_steps": spec.diagnostic_steps(),
+            "snapshot_steps": spec.snapshot_steps(), "created": _now()})
+        sim, progress = self._resume()
+        resumed_from = progress["step"] if sim is not None else None
+        self.rows = self._partial_rows("stats", progress["step"]) if sim else []
+        self.profile_rows = self._partial_rows("profiles", progress["step"]) if sim else []
+        self.step_rows = self._partial_rows("steps", progress["step"]) if sim else []
+        if sim is None:
+            sim = self.adapter.create(spec)
+            self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, seed {spec.seed}, "
+                     f"backend {getattr(sim, 'backend', spec.backend)}")
+        else:
+            self.log(f"resume from checkpoint at step {resumed_from}")
+        base_timings = progress["timings"]
+        step_wall = float(progress["step_wall_s"])
+        max_particles = max(int(progress["max_particles"]), self.adapter.size(sim))
+        diag_steps = set(spec.diagnostic_steps())
+        snap_steps = set(spec.snapshot_steps())
+        total = spec.total_steps
+        chunk = 1 if spec.record_steps else 10
+        failure = None
+        from tqdm.auto import tqdm
+        bar = tqdm(total=total, initial=sim.step_count, desc=f"{spec.solver} {spec.scene.name}", unit="step",
+                   disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
+        try:
+            if sim.step_count == 0 and (0 in diag_steps or 0 in snap_steps):
+                self._record(sim, _flatten(sim.stats()) if spec.solver == "particles" else None, 0 in snap_steps)
+            while sim.step_count < total:
+                s0 = sim.step_count
+                targets = [total, s0 + chunk] + [s for s in diag_steps | snap_steps if s > s0]
+                if self.adapter.can_checkpoint:
+                    targets.append((s0 // spec.checkpoint_interval + 1) * spec.checkpoint_interval)
+                if s0 < spec.warmup_steps:
+                    targets.append(spec.warmup_steps)
+                n = min(targets) - s0
+                t0 = time.perf_counter()
+                sim.step(n)
+                step_wall += time.perf_counter() - t0
+                s = sim.step_count
+                row = self.adapter.step_row(sim)
+                self.adapter.check(sim, spec, row)
+                max_particles = max(max_particles, self.adapter.size(sim))
+                if spec.record_steps:
+                    self.step_rows.append(row)
+                if s == spec.warmup_steps:
+                    sim.reset_timings()
+                    base_timings = {}
+                if s in diag_steps or s in snap_steps:
+                    self._record(sim, row if spec.solver == "particles" else None, s in snap_steps)
+                if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and s < total:
+                    self._checkpoint(sim, {"step": s, "timings": _merge_timings(base_timings, sim.timings()),
+                                           "step_wall_s": step_wall, "max_particles": max_particles,
+                                           "segments": progress["segments"] + 1})
+                bar.update(n)
+                if self.on_step is not None:
+                    self.on_step(s)
+        except self.adapter.instability_errors() as exc:
+            failure = exc
+            self.log(f"UNSTABLE: {exc}")
+        except BaseException as exc:
+            self.log(f"interrupted at step {sim.step_count}: {exc!r}")
+            raise
+        finally:
+            bar.close()
+        timings = _merge_timings(base_timings, sim.timings())
+        return self._finish(sim, failure, timings, step_wall, max_particles, resumed_from,
+                            time.perf_counter() - started)
+
+    def _finish(self, sim, failure, timings, step_wall, max_particles, resumed_from, wall) -> RunResult:
+        import pandas as pd
+        spec = self.spec
+        write_csv(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
+                               columns=["phase", "total_ms", "count", "mean_ms"]), self.dir / "timings.csv")
+        if self.rows:
+            write_parquet(pd.DataFrame(self.rows), self.dir / "stats.parquet")
+        if self.profile_rows:
+            write_parquet(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
+        if self.step_rows:
+            write_csv(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
+        from bench.studies.environment import device_description
+        backend = getattr(sim, "backend", None) or self.identity["backend"]
+        info = {
+            "format": RUN_FORMAT, "key": self.identity_key, "solver": spec.solver, "scene": spec.scene.name,
+            "seed": spec.seed, "steps_requested": spec.total_steps,
+            "stable": failure is None,
+            "reason": None if failure is None else failure.reason,
+            "step": sim.step_count if failure is None else failure.step,
+            "particles": [] if failure is None else list(failure.particles)[:16],
+            "last_good_step": sim.step_count if failure is None else failure.last_good_step,
+            "time_s": float(sim.time) if failure is None else None,
+            "max_particles": max_particles if spec.solver == "particles" else None,
+            "cells": max_particles if spec.solver == "grid" else None,
+            "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
+            "backend": backend, "device": device_description(backend),
+            "code": self.identity["code"], "finished": _now(),
+        }
+        if failure is None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.dir / "progress.json")
+        atomic_write_json(self.dir / "result.json", info)
+        self.log("finished " + ("stable" if failure is None else f"UNSTABLE at step {failure.step}")
+                 + f" ({step_wall:.2f} s in steps)")
+        return RunResult(self.dir, info, cached=False)
+
+
+def execute(spec: RunSpec, root: str | Path | None = None, *, quiet: bool = False,
+            on_step: Callable[[int], None] | None = None) -> RunResult:
+    """Run `spec` (or return its stored result without any work).  See the module docstring.
+
+    on_step(step) is called after every chunk of steps (tests use it to simulate a crash)."""
+    identity = spec.identity()
+    key = spec.key(identity)
+    directory = spec.directory(root, key)
+    if (directory / "result.json").exists():
+        return RunResult.load(directory, cached=True)
+    directory.mkdir(parents=True, exist_ok=True)
+    with _locked(directory):
+        if (directory / "result.json").exists():
+            return RunResult.load(directory, cached=True)
+        return _Run(spec, identity, key, directory, quiet, on_step).run()
+
+
+def execute_summary(spec: RunSpec, root: str | Path | None = None) -> dict:
+    """execute() for a worker process: quiet, returns the small summary dict."""
+    return execute(spec, root, quiet=True).summary()
+
+
+def cached_result(spec: RunSpec, root: str | Path | None = None) -> RunResult | None:
+    """The stored result of `spec`, or None when it has not run to completion."""
+    directory = spec.directory(root)
+    return RunResult.load(directory, cached=True) if (directory / "result.json").exists() else None
