@@ -1,0 +1,614 @@
+"""Cloud statistics shared by the particle solver and the grid baseline.
+
+Particles are first deposited onto a regular grid with the SPH poly6 kernel
+(:func:`deposit`); the grid baseline's fields are already on one.  Both then go
+through the *same* diagnostics code (:func:`diagnostics`,
+:func:`vertical_profiles`), so any difference between the solvers is physics,
+not bookkeeping.
+
+Conventions (the project's, see SPEC.md):
+
+* grids are ``(nx, ny, nz)`` arrays on cell centres, ``y`` (axis 1) is up;
+  cell ``j`` along y spans ``[origin_y + j dy, origin_y + (j + 1) dy]``;
+* x and z are periodic, y has walls (the paper's cloud box);
+* units are SI: m, s, K, kg/kg for vapor ``v`` and cloud ``w``, kg/m^3 for
+  densities, kg/m^2 for the liquid water path;
+* a cell is *cloudy* when ``w > threshold`` (default 1e-5 kg/kg).
+
+Results are plain dicts (one row per snapshot) and pandas DataFrames, written
+to CSV or Parquet with :func:`save_frame`.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+__all__ = [
+    "CLOUD_THRESHOLD",
+    "DIAGNOSTIC_COLUMNS",
+    "PROFILE_COLUMNS",
+    "poly6",
+    "deposit",
+    "grid_for_scene",
+    "deposit_state",
+    "cloudy_mask",
+    "cloud_fraction_profile",
+    "cloud_cover",
+    "liquid_water_path",
+    "cloud_base_top",
+    "cloud_objects",
+    "vertical_profiles",
+    "diagnostics",
+    "particle_diagnostics",
+    "particle_profiles",
+    "grid_diagnostics",
+    "grid_profiles",
+    "timeseries_frame",
+    "onset_time",
+    "onset_times",
+    "save_frame",
+]
+
+CLOUD_THRESHOLD = 1e-5
+"""Default cloud mixing ratio (kg/kg) above which a cell counts as cloudy."""
+
+DIAGNOSTIC_COLUMNS = (
+    "cloud_cover", "lwp_mean", "lwp_max", "cloud_base", "cloud_top", "base_p10", "top_p90",
+    "n_objects", "object_volume_mean", "object_volume_max", "cloudy_volume", "cloud_max",
+    "total_water", "total_vapor", "total_cloud", "total_heat", "total_mass",
+)
+"""Keys of the dict returned by :func:`diagnostics`, in order."""
+
+PROFILE_COLUMNS = ("z", "cloud_fraction", "temperature", "vapor", "cloud")
+"""Columns of the DataFrame returned by :func:`vertical_profiles`."""
+
+_DEFAULT_PERIODIC = (True, False, True)
+_CHUNK_ENTRIES = 1 << 20  # particle x stencil entries per task (~50 MB of temporaries)
+
+
+# ------------------------------------------------------------------------------------------
+# small validation helpers
+# ------------------------------------------------------------------------------------------
+def _vector3(name: str, value, positive: bool = False) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} = {value!r}: expected 3 finite numbers (x, y, z)")
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} = {value!r}: every entry must be > 0")
+    return arr
+
+
+def _shape3(shape) -> tuple[int, int, int]:
+    try:
+        out = tuple(int(s) for s in shape)
+    except TypeError:
+        raise ValueError(f"shape = {shape!r}: expected 3 cell counts (nx, ny, nz)") from None
+    if len(out) != 3 or any(s < 1 for s in out) or any(float(s) != float(t) for s, t in zip(out, shape)):
+        raise ValueError(f"shape = {shape!r}: expected 3 integers >= 1 (nx, ny, nz)")
+    return out
+
+
+def _per_particle(name: str, value, n: int) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected a scalar or an array of shape ({n},), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.flatnonzero(~np.isfinite(arr))[0])
+        raise ValueError(f"{name}: non-finite value {arr[bad]} at particle index {bad}")
+    return arr
+
+
+# ------------------------------------------------------------------------------------------
+# deposition (particles -> grid)
+# ------------------------------------------------------------------------------------------
+def poly6(r2, h):
+    """Poly6 kernel W(r, h) = 315 / (64 pi h^9) (h^2 - r^2)^3 for r < h, else 0 (1/m^3).
+
+    Takes the squared distance ``r2`` (m^2) and the kernel radius ``h`` (m); the
+    density kernel of eq. 1 (Mueller et al. 2003).
+    """
+    r2 = np.asarray(r2, dtype=np.float64)
+    h = np.asarray(h, dtype=np.float64)
+    q = np.maximum(h * h - r2, 0.0)
+    return (315.0 / (64.0 * math.pi)) / h**9 * (q * q * q)
+
+
+def deposit(positions, masses, kernel_radius, fields: Mapping[str, np.ndarray], shape, cell_size,
+            periodic: Sequence[bool] = _DEFAULT_PERIODIC, origin=(0.0, 0.0, 0.0),
+            empty_value: float = 0.0, workers: int | None = None) -> dict:
+    """Deposit particle fields onto cell centres with the poly6 kernel, Shepard-normalised.
+
+    Parameters
+    ----------
+    positions : (N, 3) m.  Positions outside a periodic axis are wrapped.
+    masses : (N,) kg (or a scalar).
+    kernel_radius : (N,) m (or a scalar): per-particle h (adaptive levels differ).
+    fields : name -> (N,) per-particle values (e.g. temperature K, vapor and cloud kg/kg).
+    shape : (nx, ny, nz) cells; cell_size : (3,) m (or a scalar); origin : (3,) m, the
+        corner of cell (0, 0, 0).
+    periodic : per axis, True wraps kernel footprints around (periodic images), False
+        drops the cells beyond the wall.
+    empty_value : value given to a field in a cell that no particle reaches.
+    workers : threads (default: CPU count, at most 8).
+
+    Returns
+    -------
+    dict with ``density`` (nx, ny, nz) kg/m^3, one grid per input field, ``cell_size``
+    (3,) m and ``origin`` (3,) m (the same keys as ``GridSimulation.fields()``).
+
+    Method: each particle's kernel weights W(|x_c - x_j|, h_j) over the cells c it
+    reaches are normalised so that sum_c W~_jc V = 1 (V the cell volume).  Then
+    ``density = sum_j m_j W~_jc`` and ``field = sum_j m_j f_j W~_jc / density`` (Shepard),
+    so a constant field is reproduced exactly and every mass-weighted total is
+    conserved to rounding: sum_c density f V = sum_j m_j f_j.  Near a wall the
+    footprint is cut and renormalised (nothing leaks out of the box).  A particle whose
+    kernel reaches no cell centre (h smaller than half a cell) goes wholly into the cell
+    that holds it (clamped into the box on wall axes).
+    """
+    shape = _shape3(shape)
+    dx = _vector3("cell_size", cell_size, positive=True)
+    origin = _vector3("origin", origin)
+    periodic = tuple(bool(p) for p in periodic)
+    if len(periodic) != 3:
+        raise ValueError(f"periodic = {periodic!r}: expected 3 booleans (x, y, z)")
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions: expected shape (N, 3), got {pos.shape}")
+    if not np.all(np.isfinite(pos)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(pos), axis=1))[0])
+        raise ValueError(f"positions: non-finite value at particle index {bad}: {pos[bad]}")
+    n = pos.shape[0]
+    mass = _per_particle("masses", masses, n)
+    if np.any(mass < 0):
+        raise ValueError("masses: must be >= 0 kg")
+    h = _per_particle("kernel_radius", kernel_radius, n)
+    if np.any(h <= 0):
+        raise ValueError("kernel_radius: must be > 0 m")
+    values = {}
+    for name, val in fields.items():
+        if name in ("density", "cell_size", "origin"):
+            raise ValueError(f"fields: '{name}' is a reserved output name")
+        values[name] = _per_particle(f"fields['{name}']", val, n)
+
+    n_cells = shape[0] * shape[1] * shape[2]
+    cell_volume = float(np.prod(dx))
+    dims = np.array(shape, dtype=np.int64)
+
+    rel = (pos - origin) / dx                       # position in cell units
+    home = np.floor(rel).astype(np.int64)          # the cell holding the particle
+    delta = rel - home - 0.5                       # offset from its centre, in [-0.5, 0.5)
+    # Cells i + k with |k - delta| < h/dx can be reached: |k| <= floor(h/dx + 0.5).
+    # Particles are grouped by that reach (adaptive levels have smaller kernels).
+    reach = np.floor(h[:, None] / dx[None, :] + 0.5).astype(np.int64)
+    span = int(reach.max()) + 1 if n else 1
+    key = (reach[:, 0] * span + reach[:, 1]) * span + reach[:, 2]
+    tasks = []
+    for k in np.unique(key):
+        members = np.flatnonzero(key == k)
+        reach_g = reach[members[0]]
+        h_max = float(h[members].max())
+        ks = np.stack(np.meshgrid(*[np.arange(-r, r + 1) for r in reach_g], indexing="ij"), -1).reshape(-1, 3)
+        nearest = np.maximum(np.abs(ks) - 0.5, 0.0) * dx  # closest a centre at offset k can be
+        ks = ks[np.sum(nearest**2, axis=1) < h_max**2]
+        chunk = max(1, _CHUNK_ENTRIES // max(len(ks), 1))
+        tasks += [(members[s:s + chunk], ks, reach_g) for s in range(0, len(members), chunk)]
+
+    def run(share):
+        """Deposit a list of tasks into private accumulators (one per thread)."""
+        density, sums = np.zeros(n_cells), {name: np.zeros(n_cells) for name in values}
+        for idx, ks, reach_g in share:
+            d, f = _deposit_chunk(idx, ks, reach_g, home, delta, h, mass, values, dx, dims, periodic,
+                                  cell_volume, n_cells)
+            density += d
+            for name in sums:
+                sums[name] += f[name]
+        return density, sums
+
+    workers = max(1, min(len(tasks), workers if workers else min(os.cpu_count() or 1, 8)))
+    shares = [tasks[i::workers] for i in range(workers)]
+    if workers > 1:  # numpy releases the GIL in the heavy loops; threads share the inputs
+        with ThreadPoolExecutor(workers) as pool:
+            parts = list(pool.map(run, shares))
+    else:
+        parts = [run(shares[0])]
+    acc_density = np.sum([d for d, _ in parts], axis=0) if parts else np.zeros(n_cells)
+    acc = {name: (np.sum([f[name] for _, f in parts], axis=0) if parts else np.zeros(n_cells))
+           for name in values}
+
+    density = acc_density.reshape(shape)
+    out = {"density": density}
+    filled = density > 0
+    for name, total in acc.items():
+        grid = np.full(shape, float(empty_value))
+        np.divide(total.reshape(shape), density, out=grid, where=filled)
+        out[name] = grid
+    out["cell_size"] = dx
+    out["origin"] = origin
+    return out
+
+
+def _deposit_chunk(idx, ks, reach, home, delta, h, mass, values, dx, dims, periodic, cell_volume, n_cells):
+    """Deposit particles `idx` over stencil offsets `ks`: (density sums, {field: sums}) per cell.
+
+    Distances and cell indices are built per axis over the 2R+1 offsets of that axis,
+    then combined for the 3D offsets, so the (particles x offsets) work is a few gathers.
+    """
+    r2 = 0.0
+    flat = 0
+    for axis in range(3):
+        offsets = np.arange(-reach[axis], reach[axis] + 1)
+        # distance from the particle to the centre of cell home + k along this axis: (k - delta) dx
+        d2 = ((offsets[None, :] - delta[idx, axis, None]) * dx[axis]) ** 2
+        cell = home[idx, axis, None] + offsets[None, :]
+        if periodic[axis]:
+            cell %= dims[axis]
+        else:
+            outside = (cell < 0) | (cell >= dims[axis])
+            d2[outside] = np.inf                    # beyond the wall: no weight
+            np.clip(cell, 0, dims[axis] - 1, out=cell)
+        pick = ks[:, axis] + reach[axis]
+        r2 = r2 + d2[:, pick]
+        flat = flat * dims[axis] + cell[:, pick]
+    hj = h[idx, None]
+    weight = poly6(np.minimum(r2, hj * hj), hj)
+    norm = weight.sum(axis=1) * cell_volume
+    lonely = norm <= 0.0
+    if np.any(lonely):
+        # kernel reaches no centre: all of it goes into the (clamped / wrapped) home cell, k = 0
+        zero = int(np.flatnonzero(np.all(ks == 0, axis=1))[0])
+        weight[lonely, zero] = 1.0
+        norm[lonely] = cell_volume
+    weight /= norm[:, None]                         # now sum_c W~ V = 1 per particle
+    touched = weight > 0.0
+    flat = flat[touched]
+    mw = (weight * mass[idx, None])[touched]
+    density = np.bincount(flat, weights=mw, minlength=n_cells)
+    sums = {}
+    for name, val in values.items():
+        sums[name] = np.bincount(flat, weights=mw * np.broadcast_to(val[idx, None], touched.shape)[touched],
+                                 minlength=n_cells)
+    return density, sums
+
+
+def grid_for_scene(scene, resolution=None) -> tuple[tuple[int, int, int], np.ndarray]:
+    """The deposition grid for a scene's domain: ``(shape, cell_size)``.
+
+    ``resolution``: None -> one cell per initial particle spacing (the grid
+    baseline's default ``cells_per_spacing = 1``); an int n -> n cells along the
+    longest axis and near-cubic cells elsewhere; a tuple (nx, ny, nz) -> exactly
+    that.  Cell sizes divide the domain exactly (m).
+    """
+    size = _vector3("scene.domain.size", scene.domain.size, positive=True)
+    if resolution is None:
+        target = float(scene.particles.spacing)
+        shape = tuple(max(1, int(round(s / target))) for s in size)
+    elif np.ndim(resolution) == 0:
+        n = int(resolution)
+        if n < 1 or float(n) != float(resolution):
+            raise ValueError(f"resolution = {resolution!r}: expected an integer >= 1 (cells along the longest axis)")
+        target = float(size.max()) / n
+        shape = tuple(max(1, int(round(s / target))) for s in size)
+    else:
+        shape = _shape3(resolution)
+    return shape, size / np.array(shape, dtype=np.float64)
+
+
+def deposit_state(state: Mapping[str, np.ndarray], scene, resolution=None,
+                  fields: Iterable[str] = ("temperature", "vapor", "cloud")) -> dict:
+    """Deposit a ``Simulation.state()`` dict on the scene's grid (see :func:`grid_for_scene`).
+
+    Uses the particles' own ``mass`` (kg) and ``kernel_radius`` (m) and the scene's
+    per-axis boundaries.  Returns the dict of :func:`deposit`.
+    """
+    missing = [k for k in ("position", "mass", "kernel_radius", *fields) if k not in state]
+    if missing:
+        have = ", ".join(sorted(state))
+        raise KeyError(f"particle state lacks {', '.join(missing)} (has: {have}); "
+                       "cloud statistics need a scene with an [atmosphere] section")
+    shape, cell_size = grid_for_scene(scene, resolution)
+    periodic = tuple(b == "periodic" for b in scene.domain.boundary)
+    return deposit(state["position"], state["mass"], state["kernel_radius"],
+                   {k: state[k] for k in fields}, shape, cell_size, periodic=periodic)
+
+
+# ------------------------------------------------------------------------------------------
+# diagnostics on gridded fields
+# ------------------------------------------------------------------------------------------
+def _cell_geometry(fields: Mapping, cell_size, origin):
+    dx = _vector3("cell_size", fields.get("cell_size") if cell_size is None else cell_size, positive=True)
+    org = _vector3("origin", fields.get("origin", (0.0, 0.0, 0.0)) if origin is None else origin)
+    return dx, org
+
+
+def _grid(fields: Mapping, name: str) -> np.ndarray:
+    if name not in fields:
+        raise KeyError(f"fields lack '{name}' (have: {', '.join(sorted(map(str, fields)))})")
+    arr = np.asarray(fields[name], dtype=np.float64)
+    if arr.ndim != 3:
+        raise ValueError(f"fields['{name}']: expected an (nx, ny, nz) grid, got shape {arr.shape}")
+    return arr
+
+
+def _air_density(fields: Mapping, shape, air_density: float) -> np.ndarray:
+    """The density grid (kg/m^3): ``fields['density']`` if present, else uniform `air_density`."""
+    if "density" in fields and fields["density"] is not None:
+        rho = np.asarray(fields["density"], dtype=np.float64)
+        if rho.shape != tuple(shape):
+            raise ValueError(f"fields['density']: shape {rho.shape} differs from the field grids {tuple(shape)}")
+        return rho
+    if not (air_density > 0 and math.isfinite(air_density)):
+        raise ValueError(f"air_density = {air_density!r}: expected a finite value > 0 kg/m^3")
+    return np.full(shape, float(air_density))
+
+
+def cloudy_mask(cloud: np.ndarray, threshold: float = CLOUD_THRESHOLD) -> np.ndarray:
+    """Boolean grid: cloud mixing ratio w (kg/kg) above `threshold`."""
+    if not (threshold >= 0 and math.isfinite(threshold)):
+        raise ValueError(f"threshold = {threshold!r}: expected a finite value >= 0 kg/kg")
+    return np.asarray(cloud) > threshold
+
+
+def cloud_fraction_profile(cloud: np.ndarray, threshold: float = CLOUD_THRESHOLD) -> np.ndarray:
+    """a_c(z): fraction of the cells of each horizontal layer that are cloudy, shape (ny,)."""
+    return cloudy_mask(cloud, threshold).mean(axis=(0, 2))
+
+
+def cloud_cover(cloud: np.ndarray, threshold: float = CLOUD_THRESHOLD) -> float:
+    """Projected cloud cover: fraction of (x, z) columns holding at least one cloudy cell."""
+    return float(cloudy_mask(cloud, threshold).any(axis=1).mean())
+
+
+def liquid_water_path(cloud: np.ndarray, density: np.ndarray, dy: float) -> np.ndarray:
+    """LWP per column, integral of rho w dy (kg/m^2), shape (nx, nz)."""
+    return np.sum(np.asarray(density) * np.asarray(cloud), axis=1) * float(dy)
+
+
+def cloud_base_top(cloud: np.ndarray, dy: float, y0: float = 0.0,
+                   threshold: float = CLOUD_THRESHOLD) -> dict:
+    """Cloud base and top heights (m).
+
+    ``cloud_base`` / ``cloud_top``: lower face of the lowest and upper face of the
+    highest cloudy cell; ``base_p10`` / ``top_p90``: 10th percentile of per-column
+    bases and 90th percentile of per-column tops over cloudy columns.  All NaN
+    when there is no cloud.
+    """
+    mask = cloudy_mask(cloud, threshold)
+    ny = mask.shape[1]
+    columns = mask.any(axis=1)
+    if not columns.any():
+        return dict(cloud_base=math.nan, cloud_top=math.nan, base_p10=math.nan, top_p90=math.nan)
+    lowest = np.argmax(mask, axis=1)[columns]                     # first cloudy j per column
+    highest = ny - 1 - np.argmax(mask[:, ::-1, :], axis=1)[columns]
+    bases = y0 + lowest * dy
+    tops = y0 + (highest + 1) * dy
+    return dict(cloud_base=float(bases.min()), cloud_top=float(tops.max()),
+                base_p10=float(np.percentile(bases, 10)), top_p90=float(np.percentile(tops, 90)))
+
+
+def cloud_objects(mask: np.ndarray, periodic: Sequence[bool] = _DEFAULT_PERIODIC) -> tuple[np.ndarray, np.ndarray]:
+    """Connected cloudy regions (face connectivity), merged across periodic faces.
+
+    Returns ``(labels, sizes)``: an int grid with 0 for clear air and 1..n for the
+    objects, and the cell count of each object (length n, ordered by label).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    labels, n = ndimage.label(mask)
+    if n == 0:
+        return labels, np.zeros(0, dtype=np.int64)
+    a_parts, b_parts = [], []
+    for axis, wrap in enumerate(periodic):
+        if not wrap:
+            continue
+        first = np.take(labels, 0, axis=axis)
+        last = np.take(labels, -1, axis=axis)
+        touch = (first > 0) & (last > 0)
+        a_parts.append(first[touch])
+        b_parts.append(last[touch])
+    if a_parts:
+        a = np.concatenate(a_parts)
+        b = np.concatenate(b_parts)
+        graph = coo_matrix((np.ones(a.size), (a, b)), shape=(n + 1, n + 1))
+        _, component = connected_components(graph, directed=False)
+        # renumber components of labels 1..n densely as 1..m (label 0 stays 0)
+        _, dense = np.unique(component[1:], return_inverse=True)
+        lut = np.concatenate([[0], dense.reshape(-1) + 1])
+        labels = lut[labels]
+        n = int(lut.max())
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    return labels, sizes
+
+
+def diagnostics(fields: Mapping, cell_size=None, origin=None, threshold: float = CLOUD_THRESHOLD,
+                air_density: float = 1.0, periodic: Sequence[bool] = _DEFAULT_PERIODIC) -> dict:
+    """One row of cloud statistics from gridded fields (both solvers).
+
+    ``fields`` holds ``cloud`` w and ``vapor`` v (kg/kg), ``temperature`` T (K) on an
+    (nx, ny, nz) grid, optionally ``density`` (kg/m^3, from :func:`deposit`; else the
+    uniform `air_density`, the scene's rest density), ``cell_size`` and ``origin``
+    (used when the arguments are None).
+
+    Keys (:data:`DIAGNOSTIC_COLUMNS`): cloud_cover (fraction of columns); lwp_mean,
+    lwp_max (kg/m^2, mean over all columns, max); cloud_base, cloud_top, base_p10,
+    top_p90 (m, see :func:`cloud_base_top`); n_objects, object_volume_mean,
+    object_volume_max (m^3, periodic-aware objects); cloudy_volume (m^3); cloud_max
+    (kg/kg); total_water = sum rho (v + w) dV, total_vapor, total_cloud (kg);
+    total_heat = sum rho T dV (K kg); total_mass = sum rho dV (kg).
+    """
+    dx, org = _cell_geometry(fields, cell_size, origin)
+    w = _grid(fields, "cloud")
+    v = _grid(fields, "vapor")
+    t = _grid(fields, "temperature")
+    for name, arr in (("vapor", v), ("temperature", t)):
+        if arr.shape != w.shape:
+            raise ValueError(f"fields['{name}']: shape {arr.shape} differs from fields['cloud'] {w.shape}")
+    rho = _air_density(fields, w.shape, air_density)
+    dv = float(np.prod(dx))
+    mask = cloudy_mask(w, threshold)
+    lwp = liquid_water_path(w, rho, dx[1])
+    _, sizes = cloud_objects(mask, periodic)
+    volumes = sizes * dv
+    row = dict(
+        cloud_cover=float(mask.any(axis=1).mean()),
+        lwp_mean=float(lwp.mean()),
+        lwp_max=float(lwp.max()),
+        **cloud_base_top(w, dx[1], org[1], threshold),
+        n_objects=int(sizes.size),
+        object_volume_mean=float(volumes.mean()) if sizes.size else 0.0,
+        object_volume_max=float(volumes.max()) if sizes.size else 0.0,
+        cloudy_volume=float(mask.sum() * dv),
+        cloud_max=float(w.max()),
+        total_water=float(np.sum(rho * (v + w)) * dv),
+        total_vapor=float(np.sum(rho * v) * dv),
+        total_cloud=float(np.sum(rho * w) * dv),
+        total_heat=float(np.sum(rho * t) * dv),
+        total_mass=float(np.sum(rho) * dv),
+    )
+    return {k: row[k] for k in DIAGNOSTIC_COLUMNS}
+
+
+def vertical_profiles(fields: Mapping, cell_size=None, origin=None, threshold: float = CLOUD_THRESHOLD,
+                      air_density: float = 1.0) -> pd.DataFrame:
+    """Horizontal-mean profiles against height: one row per layer (:data:`PROFILE_COLUMNS`).
+
+    ``z`` is the layer's centre height (m); ``cloud_fraction`` is a_c(z); T (K),
+    v and w (kg/kg) are density-weighted horizontal means (plain means on a uniform
+    density grid; cells no particle reaches carry no weight).
+    """
+    dx, org = _cell_geometry(fields, cell_size, origin)
+    w = _grid(fields, "cloud")
+    rho = _air_density(fields, w.shape, air_density)
+    layer_mass = rho.sum(axis=(0, 2))
+    safe = np.where(layer_mass > 0, layer_mass, 1.0)
+
+    def mean(name):
+        out = np.sum(rho * _grid(fields, name), axis=(0, 2)) / safe
+        return np.where(layer_mass > 0, out, np.nan)
+
+    ny = w.shape[1]
+    return pd.DataFrame({
+        "z": org[1] + (np.arange(ny) + 0.5) * dx[1],
+        "cloud_fraction": cloud_fraction_profile(w, threshold),
+        "temperature": mean("temperature"),
+        "vapor": mean("vapor"),
+        "cloud": mean("cloud"),
+    })
+
+
+# ------------------------------------------------------------------------------------------
+# one entry point per solver, the same code behind both
+# ------------------------------------------------------------------------------------------
+def _periodic_of(scene) -> tuple[bool, bool, bool]:
+    if scene is None:
+        return _DEFAULT_PERIODIC
+    return tuple(b == "periodic" for b in scene.domain.boundary)
+
+
+def _rest_density(scene) -> float:
+    return 1.0 if scene is None else float(scene.particles.rest_density)
+
+
+def particle_diagnostics(state: Mapping[str, np.ndarray], scene, resolution=None,
+                         threshold: float = CLOUD_THRESHOLD) -> dict:
+    """Diagnostics of a particle snapshot: :func:`deposit_state` then :func:`diagnostics`.
+
+    The deposited density grid is the air density, so the water and heat budgets
+    equal the particles' mass-weighted sums.
+    """
+    grid = deposit_state(state, scene, resolution)
+    return diagnostics(grid, threshold=threshold, periodic=_periodic_of(scene))
+
+
+def particle_profiles(state: Mapping[str, np.ndarray], scene, resolution=None,
+                      threshold: float = CLOUD_THRESHOLD) -> pd.DataFrame:
+    """Vertical profiles of a particle snapshot (deposited as in :func:`particle_diagnostics`)."""
+    return vertical_profiles(deposit_state(state, scene, resolution), threshold=threshold)
+
+
+def grid_diagnostics(fields: Mapping, scene=None, threshold: float = CLOUD_THRESHOLD) -> dict:
+    """Diagnostics of ``GridSimulation.fields()`` (cell_size and origin are in the dict).
+
+    Air density: ``fields['density']`` if present, else the scene's rest density
+    (1 kg/m^3 without a scene).
+    """
+    return diagnostics(fields, threshold=threshold, air_density=_rest_density(scene),
+                       periodic=_periodic_of(scene))
+
+
+def grid_profiles(fields: Mapping, scene=None, threshold: float = CLOUD_THRESHOLD) -> pd.DataFrame:
+    """Vertical profiles of ``GridSimulation.fields()``."""
+    return vertical_profiles(fields, threshold=threshold, air_density=_rest_density(scene))
+
+
+# ------------------------------------------------------------------------------------------
+# time series
+# ------------------------------------------------------------------------------------------
+def timeseries_frame(rows: Iterable[Mapping], **labels) -> pd.DataFrame:
+    """A DataFrame from diagnostics rows (each should carry ``time_s``), label columns first.
+
+    ``timeseries_frame(rows, solver="particles", mode="adaptive", seed=3)`` gives the
+    layout of ``compare_timeseries.csv``.  Rows are sorted by time when ``time_s`` exists.
+    """
+    df = pd.DataFrame(list(rows))
+    for i, (key, value) in enumerate(labels.items()):
+        df.insert(i, key, value)
+    if "time_s" in df.columns:
+        df = df.sort_values("time_s", kind="stable").reset_index(drop=True)
+    return df
+
+
+def onset_time(df: pd.DataFrame, cover_column: str = "cloud_cover", time_column: str = "time_s") -> float:
+    """First time (s) with cloud cover > 0 in a time series; NaN if cloud never forms."""
+    for col in (cover_column, time_column):
+        if col not in df.columns:
+            raise KeyError(f"time series lacks column '{col}' (has: {', '.join(map(str, df.columns))})")
+    ordered = df.sort_values(time_column, kind="stable")
+    cloudy = ordered[ordered[cover_column] > 0]
+    return float(cloudy[time_column].iloc[0]) if len(cloudy) else math.nan
+
+
+def onset_times(df: pd.DataFrame, by: Sequence[str] = ("solver", "mode", "seed"),
+                cover_column: str = "cloud_cover", time_column: str = "time_s") -> pd.DataFrame:
+    """Onset time per group (e.g. per solver, mode and seed): columns ``*by, onset_s``."""
+    by = [b for b in by if b in df.columns]
+    if not by:
+        return pd.DataFrame({"onset_s": [onset_time(df, cover_column, time_column)]})
+    rows = []
+    for key, group in df.groupby(by, sort=True):
+        key = key if isinstance(key, tuple) else (key,)
+        rows.append({**dict(zip(by, key)), "onset_s": onset_time(group, cover_column, time_column)})
+    return pd.DataFrame(rows)
+
+
+def save_frame(df: pd.DataFrame, path) -> Path:
+    """Write a DataFrame to ``.csv`` or ``.parquet`` (by suffix) atomically; returns the path."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".csv", ".parquet"):
+        raise ValueError(f"{path}: expected a .csv or .parquet file name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        if suffix == ".csv":
+            df.to_csv(tmp, index=False)
+        else:
+            df.to_parquet(tmp, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
