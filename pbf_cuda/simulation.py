@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import initial_state
-from .kernels import lattice_kernel_sum, reference_gradient_norm2
+from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
 from .scene import Scene, SceneError, load_scene, scene_from_dict
 
@@ -84,7 +84,8 @@ def build_params(scene: Scene, n_fluid: int, capacity: int):
     h0 = scene.kernel_radius
     rho0 = scene.particles.rest_density
     # m0 such that a full lattice neighbourhood has density exactly rho0 (eq. 1).
-    m0 = rho0 / lattice_kernel_sum(h0, d)
+    m0 = initial_state.lattice_mass(scene)
+    d = float(np.prod(initial_state.lattice_spacings(scene)) ** (1.0 / 3.0))
     p.domain = list(scene.domain.size)
     p.periodic = [b == "periodic" for b in scene.domain.boundary]
     p.spacing = d

@@ -1,0 +1,230 @@
+// Adaptive particles (section 5.2): shape energy (eq. 20), splitting 1 -> 2 and merging 2 -> 1
+// with exact mass bookkeeping (m_l = m0 2^-l, h_l = h0 2^(-l/3)).
+//
+// Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
+// x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
+// of level l+1. It splits only if (a) no other candidate of higher priority (larger E, then smaller id)
+// lies within the conflict radius (so children of two parents splitting in the same step can never
+// come closer than the threshold), and (b) no existing particle other than the parent lies within
+// min_distance * h_{l+1} of either child. Winners get slots from an exclusive prefix sum; the parent's
+// slot holds child 1, slot n + scan holds child 2. With the capacity full, the winners that fit split
+// and the rest are counted as rejected.
+//
+// Merging. Candidates have E < beta and l > 0. Threads run over grid cells, not particles (Figure 4):
+// cells are processed in 27 passes, a pass taking every cell whose coordinates are congruent to the
+// pass offset modulo 3 (periodic axes have a cell count divisible by 3 when adaptive, so the pattern
+// holds across the wrap). A thread working on cell A reads and writes only particles in A and its 26
+// neighbours (A +- 1): the partner search radius h_l <= h0 <= cell side, and the too-close check around
+// the midpoint m = (x_i + x_j)/2 covers |x - m| < min_distance h_{l-1} <= 0.5 h0 with |m - x_i| <= h_l/2,
+// so every particle it touches lies within h0 of x_i, i.e. in A +- 1. Two cells of one pass are at least
+// 3 cells apart on some axis, so their A +- 1 blocks are disjoint: no particle is read by one thread while
+// another writes it, and none is consumed twice (eq. 21 with d = ceil(h / L) = 1, stride 2d + 1).
+// The merged particle replaces i at the midpoint (mass-weighted averages: equal masses); j is marked dead
+// and removed by the compaction that follows.
+#pragma once
+#include "common.h"
+#include "grid.h"
+#include "kernels.h"
+
+namespace pbf {
+
+enum AdaptFlag : uint8_t { kMergeCandidate = 1, kSplitCandidate = 2, kDead = 4, kMergedNow = 8, kSplitNow = 16 };
+
+struct AdaptParams {
+    float k_p, k_c, split_threshold, merge_threshold;
+    int max_level;
+    float min_distance;
+    float h0;
+    float spacing[kMaxLevels];  // lattice spacing of each level, m
+    float conflict_radius;      // m
+};
+
+// Shape energy (eq. 20) and candidate marks.
+struct MarkCandidates {
+    AdaptParams ap;
+    LevelRadii radii;
+    const Float4* pos;
+    const float* cloud;
+    float* energy;
+    uint8_t* flags;
+    PBF_HD void operator()(uint32_t i) const {
+        float e = ap.k_p * (-expm1f(-ap.k_c * cloud[i]));  // E = k_p (1 - exp(-k_c w))
+        energy[i] = e;
+        int l = radii.level_of_mass(pos[i].w);
+        uint8_t f = 0;
+        if (e > ap.split_threshold && l < ap.max_level) f |= kSplitCandidate;
+        if (e < ap.merge_threshold && l > 0) f |= kMergeCandidate;
+        flags[i] = f;
+    }
+};
+
+PBF_INLINE Vec3 split_direction(uint32_t id, uint32_t step) {
+    uint32_t s = hash_u32(id * 0x9E3779B9u ^ hash_u32(step));
+    float u = 2.0f * hash_unit(s) - 1.0f;              // cos(theta)
+    float phi = 2.0f * kPi * hash_unit(s ^ 0x68bc21ebu);
+    float r = sqrtf(fmaxf(0.0f, 1.0f - u * u));
+    return Vec3{r * cosf(phi), u, r * sinf(phi)};
+}
+
+// Decide which split candidates split this step; writes kSplitNow and count[i] (0 or 1).
+struct DecideSplits {
+    GridGeometry grid;
+    CellRanges fluid;
+    AdaptParams ap;
+    LevelRadii radii;
+    const float* energy;
+    const uint32_t* id;
+    uint8_t* flags;
+    uint32_t* count;
+    uint32_t step;
+    PBF_HD void operator()(uint32_t i) const {
+        count[i] = 0;
+        uint8_t fi = flags[i];
+        if (!(fi & kSplitCandidate) || (fi & (kDead | kMergedNow))) return;
+        Float4 pi = fluid.pos[i];
+        Vec3 xi = xyz(pi);
+        int l = radii.level_of_mass(pi.w);
+        float ei = energy[i];
+        uint32_t idi = id[i];
+        bool win = true;
+        for_each_neighbor(grid, fluid, xi, ap.conflict_radius, [&](uint32_t j, Vec3, float) {
+            if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
+            float ej = energy[j];
+            if (ej > ei || (ej == ei && id[j] < idi)) win = false;
+        });
+        if (!win) return;
+        Vec3 n = split_direction(idi, step);
+        Vec3 off = (0.5f * ap.spacing[l + 1]) * n;
+        Vec3 c1 = xi + off, c2 = xi - off;
+        float r_min = ap.min_distance * radii.h[l + 1];
+        float r2_min = r_min * r_min;
+        bool clear = true;
+        // Children must stay inside the walls.
+        for (int a = 0; a < 3; ++a) {
+            if (grid.periodic[a]) continue;
+            float lo = fminf(component(c1, a), component(c2, a)), hi = fmaxf(component(c1, a), component(c2, a));
+            if (lo < 0.0f || hi > grid.domain[a]) clear = false;
+        }
+        if (clear) {
+            for_each_neighbor(grid, fluid, xi, ap.h0, [&](uint32_t j, Vec3, float) {
+                if (j == i || (flags[j] & kDead)) return;
+                Vec3 xj = xyz(fluid.pos[j]);
+                Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
+                if (dot(d1, d1) < r2_min || dot(d2, d2) < r2_min) clear = false;
+            });
+        }
+        if (clear) {
+            count[i] = 1;
+            flags[i] = fi | kSplitNow;
+        }
+    }
+};
+
+// Write the children of the winners that fit in the capacity. slot[i] = exclusive scan of count.
+struct ApplySplits {
+    GridGeometry grid;
+    AdaptParams ap;
+    LevelRadii radii;
+    uint32_t n;            // particles before the split
+    uint32_t capacity;
+    uint32_t next_id;
+    uint32_t step;
+    const uint32_t* slot;
+    uint8_t* flags;
+    Float4* pos;
+    Float4* vel;
+    uint32_t* id;
+    float* density;        // children start with the parent's density (diagnostics only)
+    float* temperature;    // nullptr when no thermodynamics
+    float* vapor;
+    float* cloud;
+    PBF_HD void operator()(uint32_t i) const {
+        if (!(flags[i] & kSplitNow)) return;
+        uint32_t k = n + slot[i];
+        if (k >= capacity) {  // no room: this winner does not split
+            flags[i] &= uint8_t(~kSplitNow);
+            return;
+        }
+        Float4 p = pos[i];
+        int l = radii.level_of_mass(p.w);
+        Vec3 n3 = split_direction(id[i], step);
+        Vec3 off = (0.5f * ap.spacing[l + 1]) * n3;
+        float m_child = 0.5f * p.w;  // exact: a power-of-two division
+        pos[i] = make_float4(wrap_position(grid, xyz(p) + off), m_child);
+        pos[k] = make_float4(wrap_position(grid, xyz(p) - off), m_child);
+        vel[k] = vel[i];
+        id[k] = next_id + slot[i];
+        density[k] = density[i];
+        if (temperature) {
+            temperature[k] = temperature[i];
+            vapor[k] = vapor[i];
+            cloud[k] = cloud[i];
+        }
+        flags[k] = 0;
+    }
+};
+
+// One pass of the race-free parallel merge: one thread per cell of the pass's colour.
+struct MergePass {
+    GridGeometry grid;
+    CellRanges fluid;
+    AdaptParams ap;
+    LevelRadii radii;
+    int offset[3];
+    int per_axis[3];       // cells of this colour along each axis
+    uint8_t* flags;
+    Float4* pos;           // == fluid.pos (written in place)
+    Float4* vel;
+    float* temperature;
+    float* vapor;
+    float* cloud;
+    PBF_HD void operator()(uint32_t t) const {
+        int ax = int(t % uint32_t(per_axis[0]));
+        int ay = int((t / uint32_t(per_axis[0])) % uint32_t(per_axis[1]));
+        int az = int(t / (uint32_t(per_axis[0]) * uint32_t(per_axis[1])));
+        int c[3] = {offset[0] + 3 * ax, offset[1] + 3 * ay, offset[2] + 3 * az};
+        uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
+        for (uint32_t i = fluid.start[cell]; i < fluid.end[cell]; ++i) {
+            uint8_t fi = flags[i];
+            if (!(fi & kMergeCandidate) || (fi & (kDead | kMergedNow))) continue;
+            Float4 pi = pos[i];
+            Vec3 xi = xyz(pi);
+            int l = radii.level_of_mass(pi.w);
+            float hl = radii.h[l];
+            // Closest same-level candidate within h_l.
+            uint32_t best = 0xffffffffu;
+            float best_r2 = hl * hl;
+            Vec3 best_r{0, 0, 0};
+            for_each_in_block(grid, fluid, c, xi, hl, [&](uint32_t j, Vec3 r, float r2) {
+                if (j == i) return;
+                uint8_t fj = flags[j];
+                if (!(fj & kMergeCandidate) || (fj & (kDead | kMergedNow))) return;
+                if (pos[j].w != pi.w) return;  // same level: equal masses
+                if (r2 < best_r2 || (r2 == best_r2 && j < best)) { best = j; best_r2 = r2; best_r = r; }
+            });
+            if (best == 0xffffffffu) continue;
+            Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
+            float r_min = ap.min_distance * radii.h[l - 1];
+            float r2_min = r_min * r_min;
+            bool clear = true;
+            for_each_in_block(grid, fluid, c, mid, r_min, [&](uint32_t k, Vec3, float) {
+                if (k == i || k == best || (flags[k] & kDead)) return;
+                clear = false;
+            });
+            if (!clear) continue;
+            uint32_t j = best;
+            Float4 vi = vel[i], vj = vel[j];
+            pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
+            vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
+            if (temperature) {
+                temperature[i] = 0.5f * (temperature[i] + temperature[j]);
+                vapor[i] = 0.5f * (vapor[i] + vapor[j]);
+                cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+            }
+            flags[i] = fi | kMergedNow;
+            flags[j] |= kDead;
+        }
+    }
+};
+
+}  // namespace pbf

@@ -1,0 +1,23 @@
+// CUDA backend: the shared solver source compiled by nvcc.
+#define PBF_BACKEND_NS cuda_backend
+#define PBF_BACKEND_CUDA 1
+#include "solver_impl.inl"
+
+namespace pbf {
+std::unique_ptr<ISolver> make_cuda_solver(const Params& p) { return std::make_unique<cuda_backend::Solver>(p); }
+
+int cuda_device_count() {
+    int n = 0;
+    if (cudaGetDeviceCount(&n) != cudaSuccess) {
+        cudaGetLastError();  // clear: no driver or no device
+        return 0;
+    }
+    return n;
+}
+
+std::string cuda_device_name() {
+    cudaDeviceProp prop;
+    if (cuda_device_count() == 0 || cudaGetDeviceProperties(&prop, 0) != cudaSuccess) return "";
+    return prop.name;
+}
+}  // namespace pbf

@@ -1,0 +1,301 @@
+// Python bindings (nanobind) of the solver: module pbf_cuda._core.
+// Compiled by g++; talks to the backends only through solver_api.h.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+#include <nanobind/stl/unique_ptr.h>
+#include <nanobind/stl/vector.h>
+
+#include <cmath>
+#include <cstring>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "kernels.h"
+#include "noise.h"
+#include "params.h"
+#include "solver_api.h"
+#include "thermodynamics.h"
+
+namespace nb = nanobind;
+using namespace nb::literals;
+
+namespace {
+
+using FloatArray = nb::ndarray<const float, nb::c_contig, nb::device::cpu>;
+using UIntArray = nb::ndarray<const uint32_t, nb::c_contig, nb::device::cpu>;
+
+bool cuda_built() {
+#ifdef PBF_WITH_CUDA
+    return true;
+#else
+    return false;
+#endif
+}
+
+int device_count() {
+#ifdef PBF_WITH_CUDA
+    return pbf::cuda_device_count();
+#else
+    return 0;
+#endif
+}
+
+void require_rows(const char* name, std::size_t got, std::size_t want, std::size_t cols) {
+    if (got != want * cols)
+        throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(want) +
+                                    (cols > 1 ? " x " + std::to_string(cols) : std::string()) + " values, got " +
+                                    std::to_string(got));
+}
+
+class PySolver {
+public:
+    PySolver(const pbf::Params& p, const std::string& backend) {
+        if (backend == "cpu") {
+            impl_ = pbf::make_cpu_solver(p);
+        } else if (backend == "cuda") {
+#ifdef PBF_WITH_CUDA
+            if (pbf::cuda_device_count() == 0) throw std::runtime_error("backend 'cuda': no CUDA device is visible");
+            impl_ = pbf::make_cuda_solver(p);
+#else
+            throw std::runtime_error("backend 'cuda': this build has no CUDA backend");
+#endif
+        } else {
+            throw std::invalid_argument("backend = '" + backend + "': allowed 'cpu', 'cuda'");
+        }
+        thermodynamics_ = p.thermodynamics;
+    }
+
+    void set_fluid(FloatArray pos, FloatArray vel, FloatArray temperature, FloatArray vapor, FloatArray cloud,
+                   FloatArray mass, UIntArray id) {
+        std::size_t n = id.size();
+        require_rows("position", pos.size(), n, 3);
+        require_rows("velocity", vel.size(), n, 3);
+        require_rows("mass", mass.size(), n, 1);
+        if (thermodynamics_) {
+            require_rows("temperature", temperature.size(), n, 1);
+            require_rows("vapor", vapor.size(), n, 1);
+            require_rows("cloud", cloud.size(), n, 1);
+        }
+        impl_->set_fluid(n, pos.data(), vel.data(), thermodynamics_ ? temperature.data() : nullptr,
+                         thermodynamics_ ? vapor.data() : nullptr, thermodynamics_ ? cloud.data() : nullptr,
+                         mass.data(), id.data());
+    }
+
+    void set_boundary(FloatArray pos, FloatArray temperature, FloatArray vapor) {
+        std::size_t n = pos.size() / 3;
+        require_rows("boundary position", pos.size(), n, 3);
+        bool t = temperature.size() == n && n > 0, v = vapor.size() == n && n > 0;
+        impl_->set_boundary(n, pos.data(), t ? temperature.data() : nullptr, v ? vapor.data() : nullptr);
+    }
+
+    nb::ndarray<nb::numpy, float> get_float4(const std::string& name) {
+        pbf::ArrayView v = impl_->view(name);
+        if (v.kind != pbf::ArrayKind::Float4) throw std::invalid_argument(name + " is not a 4-vector array");
+        float* buf = new float[v.n * 4 + 1];
+        impl_->copy_to_host(name, buf);
+        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<float*>(p); });
+        return nb::ndarray<nb::numpy, float>(buf, {v.n, 4}, owner);
+    }
+
+    nb::ndarray<nb::numpy, float> get_float(const std::string& name) {
+        pbf::ArrayView v = impl_->view(name);
+        if (v.kind != pbf::ArrayKind::Float) throw std::invalid_argument(name + " is not a float array");
+        float* buf = new float[v.n + 1];
+        impl_->copy_to_host(name, buf);
+        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<float*>(p); });
+        return nb::ndarray<nb::numpy, float>(buf, {v.n}, owner);
+    }
+
+    nb::ndarray<nb::numpy, uint32_t> get_uint(const std::string& name) {
+        pbf::ArrayView v = impl_->view(name);
+        if (v.kind != pbf::ArrayKind::UInt) throw std::invalid_argument(name + " is not an integer array");
+        uint32_t* buf = new uint32_t[v.n + 1];
+        impl_->copy_to_host(name, buf);
+        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<uint32_t*>(p); });
+        return nb::ndarray<nb::numpy, uint32_t>(buf, {v.n}, owner);
+    }
+
+    // Zero-copy view (DLPack): CUDA memory on the GPU backend, host memory on the CPU backend.
+    nb::object view(nb::handle self, const std::string& name) {
+        pbf::ArrayView v = impl_->view(name);
+        int device_type = v.on_device ? nb::device::cuda::value : nb::device::cpu::value;
+        nb::dlpack::dtype dt = v.kind == pbf::ArrayKind::UInt ? nb::dtype<uint32_t>() : nb::dtype<float>();
+        std::size_t shape[2] = {v.n, 4};
+        std::size_t ndim = v.kind == pbf::ArrayKind::Float4 ? 2 : 1;
+        nb::ndarray<> arr(v.data, ndim, shape, self, nullptr, dt, device_type, 0);
+        return nb::cast(arr, nb::rv_policy::reference_internal, self);
+    }
+
+    std::vector<std::tuple<std::string, double, long long>> timings() const {
+        pbf::PhaseTotals t = impl_->timings();
+        std::vector<std::tuple<std::string, double, long long>> out;
+        for (int p = 0; p < pbf::kNumPhases; ++p) out.emplace_back(pbf::phase_name(p), t.total_ms[p], t.count[p]);
+        return out;
+    }
+
+    nb::dict stats() {
+        pbf::StepStats s = impl_->stats();
+        nb::dict d;
+        d["step"] = s.step;
+        d["time"] = s.time;
+        d["n_particles"] = s.n_particles;
+        d["density_error_mean"] = s.density_error_mean;
+        d["density_error_max"] = s.density_error_max;
+        d["max_speed"] = s.max_speed;
+        d["min_position"] = std::vector<double>(s.min_position, s.min_position + 3);
+        d["max_position"] = std::vector<double>(s.max_position, s.max_position + 3);
+        d["level_counts"] = s.level_counts;
+        d["splits"] = s.splits;
+        d["merges"] = s.merges;
+        d["split_capacity_rejects"] = s.split_capacity_rejects;
+        d["splits_last_step"] = s.split_last;
+        d["merges_last_step"] = s.merge_last;
+        d["split_capacity_rejects_last_step"] = s.capacity_rejects_last;
+        return d;
+    }
+
+    std::unique_ptr<pbf::ISolver> impl_;
+    bool thermodynamics_ = false;
+};
+
+// sum_j W(|x_j|, h) over the cubic lattice of spacing d around one site (1/m^3).
+double lattice_kernel_sum(float h, float d) {
+    int r = int(std::ceil(h / d)) + 1;
+    double s = 0.0;
+    for (int i = -r; i <= r; ++i)
+        for (int j = -r; j <= r; ++j)
+            for (int k = -r; k <= r; ++k) {
+                float r2 = d * d * float(i * i + j * j + k * k);
+                s += pbf::poly6(r2, h);
+            }
+    return s;
+}
+
+// sum_k |grad_k C_i|^2 / m_k for a full lattice neighbourhood (constraint denominator of eq. 4).
+double reference_gradient_norm2(float h, float d, float m, float rho0) {
+    int r = int(std::ceil(h / d)) + 1;
+    double gx = 0, gy = 0, gz = 0, s = 0;
+    for (int i = -r; i <= r; ++i)
+        for (int j = -r; j <= r; ++j)
+            for (int k = -r; k <= r; ++k) {
+                if (!i && !j && !k) continue;
+                pbf::Vec3 x{-d * i, -d * j, -d * k};
+                pbf::Vec3 g = pbf::spiky_gradient(x, pbf::dot(x, x), h);
+                double f = m / rho0;
+                gx += f * g.x; gy += f * g.y; gz += f * g.z;
+                s += f * f * pbf::dot(g, g) / m;
+            }
+    return (gx * gx + gy * gy + gz * gz) / m + s;
+}
+
+}  // namespace
+
+NB_MODULE(_core, m) {
+    m.doc() = "cloudpbf particle solver core (one C++ source; CUDA and OpenMP backends)";
+
+    nb::class_<pbf::Params> params(m, "Params");
+    params.def(nb::init<>());
+#define PBF_RW(name) params.def_rw(#name, &pbf::Params::name)
+    PBF_RW(spacing); PBF_RW(h0); PBF_RW(rest_density); PBF_RW(mass0); PBF_RW(dt); PBF_RW(check_every);
+    PBF_RW(iterations); PBF_RW(relaxation); PBF_RW(lambda_ref); PBF_RW(unilateral); PBF_RW(scorr_k);
+    PBF_RW(scorr_n); PBF_RW(scorr_dq); PBF_RW(xsph); PBF_RW(vorticity); PBF_RW(max_velocity);
+    PBF_RW(max_density_error); PBF_RW(thermodynamics); PBF_RW(ground_temperature); PBF_RW(lapse_rate);
+    PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
+    PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude);
+    PBF_RW(kappa); PBF_RW(smoothing_epsilon); PBF_RW(adaptive); PBF_RW(max_level); PBF_RW(k_p); PBF_RW(k_c);
+    PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(capacity);
+#undef PBF_RW
+#define PBF_ARRAY(name, T, N)                                                                      \
+    params.def_prop_rw(                                                                            \
+        #name, [](const pbf::Params& p) { return std::vector<T>(p.name, p.name + N); },            \
+        [](pbf::Params& p, const std::vector<T>& v) {                                              \
+            if (v.size() != N) throw std::invalid_argument(#name ": expected " #N " values");       \
+            for (int k = 0; k < N; ++k) p.name[k] = v[k];                                          \
+        })
+    PBF_ARRAY(domain, float, 3);
+    PBF_ARRAY(periodic, bool, 3);
+    PBF_ARRAY(gravity, float, 3);
+    PBF_ARRAY(saturation, float, 3);
+    PBF_ARRAY(noise_offset, float, 2);
+    PBF_ARRAY(smooth_fields, bool, 3);
+#undef PBF_ARRAY
+
+    nb::class_<PySolver>(m, "Solver")
+        .def(nb::init<const pbf::Params&, const std::string&>(), "params"_a, "backend"_a)
+        .def("set_fluid", &PySolver::set_fluid, "position"_a, "velocity"_a, "temperature"_a, "vapor"_a,
+             "cloud"_a, "mass"_a, "id"_a)
+        .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
+        .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
+        .def("step", [](PySolver& s, int n) { s.impl_->step(n); }, "n"_a, nb::call_guard<nb::gil_scoped_release>())
+        .def("size", [](PySolver& s) { return s.impl_->size(); })
+        .def("step_count", [](PySolver& s) { return s.impl_->step_count(); })
+        .def("time", [](PySolver& s) { return s.impl_->time(); })
+        .def("next_id", [](PySolver& s) { return s.impl_->next_id(); })
+        .def("get_float4", &PySolver::get_float4)
+        .def("get_float", &PySolver::get_float)
+        .def("get_uint", &PySolver::get_uint)
+        .def("view", [](nb::handle self, const std::string& name) {
+            return nb::cast<PySolver&>(self).view(self, name);
+        })
+        .def("timings", &PySolver::timings)
+        .def("reset_timings", [](PySolver& s) { s.impl_->reset_timings(); })
+        .def("stats", &PySolver::stats);
+
+    m.def("cuda_built", &cuda_built);
+    m.def("cuda_device_count", &device_count);
+    m.def("cuda_device_name", []() {
+#ifdef PBF_WITH_CUDA
+        return pbf::cuda_device_name();
+#else
+        return std::string();
+#endif
+    });
+    m.def("poly6", [](FloatArray r, float h) {
+        std::size_t n = r.size();
+        float* out = new float[n + 1];
+        for (std::size_t i = 0; i < n; ++i) out[i] = pbf::poly6(r.data()[i] * r.data()[i], h);
+        nb::capsule owner(out, [](void* p) noexcept { delete[] static_cast<float*>(p); });
+        return nb::ndarray<nb::numpy, float>(out, {n}, owner);
+    });
+    m.def("spiky_gradient", [](FloatArray x, float h) {
+        std::size_t n = x.size() / 3;
+        float* out = new float[3 * n + 1];
+        for (std::size_t i = 0; i < n; ++i) {
+            pbf::Vec3 r{x.data()[3 * i], x.data()[3 * i + 1], x.data()[3 * i + 2]};
+            pbf::Vec3 g = pbf::spiky_gradient(r, pbf::dot(r, r), h);
+            out[3 * i] = g.x; out[3 * i + 1] = g.y; out[3 * i + 2] = g.z;
+        }
+        nb::capsule owner(out, [](void* p) noexcept { delete[] static_cast<float*>(p); });
+        return nb::ndarray<nb::numpy, float>(out, {n, 3}, owner);
+    });
+    m.def("lattice_kernel_sum", &lattice_kernel_sum, "h"_a, "spacing"_a);
+    m.def("reference_gradient_norm2", &reference_gradient_norm2, "h"_a, "spacing"_a, "mass"_a, "rest_density"_a);
+    m.def("simplex2", [](nb::ndarray<const double, nb::c_contig, nb::device::cpu> x,
+                         nb::ndarray<const double, nb::c_contig, nb::device::cpu> y) {
+        std::size_t n = x.size();
+        if (y.size() != n) throw std::invalid_argument("simplex2: x and y differ in length");
+        double* out = new double[n + 1];
+        for (std::size_t i = 0; i < n; ++i) out[i] = pbf::simplex2(x.data()[i], y.data()[i]);
+        nb::capsule owner(out, [](void* p) noexcept { delete[] static_cast<double*>(p); });
+        return nb::ndarray<nb::numpy, double>(out, {n}, owner);
+    });
+    // The solver's exact phase-transition update (eq. 9-11), vectorised, for tests and the grid baseline.
+    m.def("phase_transition", [](FloatArray T, FloatArray v, FloatArray w, float dt, float alpha, float Q,
+                                 float A, float B, float C) {
+        std::size_t n = T.size();
+        if (v.size() != n || w.size() != n) throw std::invalid_argument("phase_transition: arrays differ in length");
+        pbf::AtmosphereParams a{};
+        a.dt = dt; a.phase_rate = alpha; a.latent_heat = Q; a.sat_a = A; a.sat_b = B; a.sat_c = C;
+        float* out = new float[3 * n + 1];
+        for (std::size_t i = 0; i < n; ++i) {
+            float t = T.data()[i], vv = v.data()[i], ww = w.data()[i];
+            pbf::phase_transition(a, t, vv, ww);
+            out[3 * i] = t; out[3 * i + 1] = vv; out[3 * i + 2] = ww;
+        }
+        nb::capsule owner(out, [](void* p) noexcept { delete[] static_cast<float*>(p); });
+        return nb::ndarray<nb::numpy, float>(out, {n, 3}, owner);
+    }, "temperature"_a, "vapor"_a, "cloud"_a, "dt"_a, "alpha"_a, "latent_heat"_a, "A"_a, "B"_a, "C"_a);
+}

@@ -1,0 +1,55 @@
+// Shared basics for both backends: the host/device macro and small vector math.
+// Everything here compiles with nvcc (CUDA backend) and with g++ (OpenMP backend).
+#pragma once
+#include <cmath>
+#include <cstdint>
+
+#if defined(__CUDACC__)
+#define PBF_HD __host__ __device__
+#else
+#define PBF_HD
+#endif
+#define PBF_INLINE PBF_HD inline
+
+namespace pbf {
+
+constexpr float kPi = 3.14159265358979323846f;
+
+struct Vec3 {
+    float x, y, z;
+};
+
+// Position (x, y, z) and mass in w; velocity (x, y, z) and w unused. 16 bytes: one vector load.
+struct alignas(16) Float4 {
+    float x, y, z, w;
+};
+
+PBF_INLINE Vec3 make_vec3(float x, float y, float z) { return Vec3{x, y, z}; }
+PBF_INLINE Vec3 xyz(const Float4& a) { return Vec3{a.x, a.y, a.z}; }
+PBF_INLINE Float4 make_float4(const Vec3& a, float w) { return Float4{a.x, a.y, a.z, w}; }
+PBF_INLINE Vec3 operator+(Vec3 a, Vec3 b) { return Vec3{a.x + b.x, a.y + b.y, a.z + b.z}; }
+PBF_INLINE Vec3 operator-(Vec3 a, Vec3 b) { return Vec3{a.x - b.x, a.y - b.y, a.z - b.z}; }
+PBF_INLINE Vec3 operator-(Vec3 a) { return Vec3{-a.x, -a.y, -a.z}; }
+PBF_INLINE Vec3 operator*(float s, Vec3 a) { return Vec3{s * a.x, s * a.y, s * a.z}; }
+PBF_INLINE Vec3 operator*(Vec3 a, float s) { return Vec3{s * a.x, s * a.y, s * a.z}; }
+PBF_INLINE Vec3& operator+=(Vec3& a, Vec3 b) { a.x += b.x; a.y += b.y; a.z += b.z; return a; }
+PBF_INLINE Vec3& operator-=(Vec3& a, Vec3 b) { a.x -= b.x; a.y -= b.y; a.z -= b.z; return a; }
+PBF_INLINE float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+PBF_INLINE Vec3 cross(Vec3 a, Vec3 b) {
+    return Vec3{a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+PBF_INLINE float length(Vec3 a) { return sqrtf(dot(a, a)); }
+PBF_INLINE float component(Vec3 a, int axis) { return axis == 0 ? a.x : (axis == 1 ? a.y : a.z); }
+PBF_INLINE void set_component(Vec3& a, int axis, float v) {
+    if (axis == 0) a.x = v; else if (axis == 1) a.y = v; else a.z = v;
+}
+PBF_INLINE bool finite3(Vec3 a) { return isfinite(a.x) && isfinite(a.y) && isfinite(a.z); }
+
+// 32-bit integer hash (lowbias32): deterministic per-particle pseudo-random numbers.
+PBF_INLINE uint32_t hash_u32(uint32_t x) {
+    x ^= x >> 16; x *= 0x7feb352dU; x ^= x >> 15; x *= 0x846ca68bU; x ^= x >> 16;
+    return x;
+}
+PBF_INLINE float hash_unit(uint32_t x) { return (hash_u32(x) >> 8) * (1.0f / 16777216.0f); }
+
+}  // namespace pbf

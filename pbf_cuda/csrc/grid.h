@@ -1,0 +1,131 @@
+// Uniform-grid neighbour search (index sort, Ihmsen et al. 2011): particles are sorted by cell
+// key every step; a cell's particles are the range [cell_start, cell_end) of the sorted arrays.
+// Cell side >= the largest kernel radius, so neighbours lie in the 27 surrounding cells.
+// Periodic axes use wrapped cell lookup and minimum-image distances (section 5.1 without the
+// image particles' memory); wall axes extend the grid by one kernel radius beyond each wall
+// for the boundary particles.
+#pragma once
+#include "common.h"
+
+namespace pbf {
+
+struct GridGeometry {
+    int dims[3];
+    float origin[3];
+    float cell[3];
+    float inv_cell[3];
+    float domain[3];
+    bool periodic[3];
+    PBF_HD uint32_t num_cells() const { return uint32_t(dims[0]) * dims[1] * dims[2]; }
+};
+
+inline GridGeometry make_grid_geometry(const float domain[3], const bool periodic[3], float h_max) {
+    GridGeometry g{};
+    for (int a = 0; a < 3; ++a) {
+        g.domain[a] = domain[a];
+        g.periodic[a] = periodic[a];
+        if (periodic[a]) {
+            int n = int(std::floor(domain[a] / h_max));
+            g.dims[a] = n < 3 ? 3 : n;
+            g.origin[a] = 0.0f;
+            g.cell[a] = domain[a] / g.dims[a];
+        } else {
+            float extent = domain[a] + 2.0f * h_max;
+            int n = int(std::ceil(extent / h_max - 1e-4f));
+            g.dims[a] = n < 1 ? 1 : n;
+            g.origin[a] = -h_max;
+            g.cell[a] = extent / g.dims[a];
+            if (g.cell[a] < h_max) { g.dims[a] -= 1; g.cell[a] = extent / g.dims[a]; }
+        }
+        g.inv_cell[a] = 1.0f / g.cell[a];
+    }
+    return g;
+}
+
+PBF_INLINE int cell_coord(const GridGeometry& g, float x, int a) {
+    int c = int(floorf((x - g.origin[a]) * g.inv_cell[a]));
+    if (g.periodic[a]) {
+        c %= g.dims[a];
+        if (c < 0) c += g.dims[a];
+    } else {
+        c = c < 0 ? 0 : (c >= g.dims[a] ? g.dims[a] - 1 : c);
+    }
+    return c;
+}
+
+PBF_INLINE uint32_t cell_index(const GridGeometry& g, int cx, int cy, int cz) {
+    return (uint32_t(cz) * g.dims[1] + uint32_t(cy)) * g.dims[0] + uint32_t(cx);
+}
+
+PBF_INLINE uint32_t cell_key(const GridGeometry& g, Vec3 p) {
+    return cell_index(g, cell_coord(g, p.x, 0), cell_coord(g, p.y, 1), cell_coord(g, p.z, 2));
+}
+
+// x_i - x_j with the minimum-image convention on periodic axes.
+PBF_INLINE Vec3 min_image(const GridGeometry& g, Vec3 d) {
+    if (g.periodic[0]) d.x -= g.domain[0] * rintf(d.x / g.domain[0]);
+    if (g.periodic[1]) d.y -= g.domain[1] * rintf(d.y / g.domain[1]);
+    if (g.periodic[2]) d.z -= g.domain[2] * rintf(d.z / g.domain[2]);
+    return d;
+}
+
+// Wrap a position into [0, L) on periodic axes.
+PBF_INLINE Vec3 wrap_position(const GridGeometry& g, Vec3 p) {
+    for (int a = 0; a < 3; ++a) {
+        if (!g.periodic[a]) continue;
+        float L = g.domain[a];
+        float v = component(p, a);
+        v -= L * floorf(v / L);
+        if (v >= L) v -= L;  // rounding at the top edge
+        set_component(p, a, v);
+    }
+    return p;
+}
+
+// A sorted particle set with its cell ranges, as seen from kernels (raw pointers only).
+struct CellRanges {
+    const Float4* pos;        // sorted positions (w = mass)
+    const uint32_t* start;    // per cell: first index
+    const uint32_t* end;      // per cell: one past the last index (start == end: empty)
+};
+
+// Calls f(j, r_ij, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c
+// with |r_ij| < r_max (r_ij = q - x_j, minimum image).
+template <class F>
+PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
+                                     float r_max, F&& f) {
+    const float r2max = r_max * r_max;
+    for (int dz = -1; dz <= 1; ++dz) {
+        int cz = c[2] + dz;
+        if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
+        else if (cz < 0 || cz >= g.dims[2]) continue;
+        for (int dy = -1; dy <= 1; ++dy) {
+            int cy = c[1] + dy;
+            if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
+            else if (cy < 0 || cy >= g.dims[1]) continue;
+            for (int dx = -1; dx <= 1; ++dx) {
+                int cx = c[0] + dx;
+                if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
+                else if (cx < 0 || cx >= g.dims[0]) continue;
+                uint32_t cell = cell_index(g, cx, cy, cz);
+                uint32_t b = set.start[cell], e = set.end[cell];
+                for (uint32_t j = b; j < e; ++j) {
+                    Float4 pj = set.pos[j];
+                    Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+                    float r2 = dot(r, r);
+                    if (r2 < r2max) f(j, r, r2);
+                }
+            }
+        }
+    }
+}
+
+// Calls f(j, r_ij, r2) for every particle j of `set` with |r_ij| < r_max (r_ij = x_i - x_j,
+// minimum image), including i itself when it belongs to the set (r2 = 0). r_max <= cell side.
+template <class F>
+PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max, F&& f) {
+    int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
+    for_each_in_block(g, set, c, xi, r_max, f);
+}
+
+}  // namespace pbf

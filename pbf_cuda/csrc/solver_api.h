@@ -1,0 +1,86 @@
+// The boundary between the Python bindings (g++) and the two backends (nvcc / g++ + OpenMP).
+// Only plain types and raw pointers cross it; each backend keeps its Thrust containers inside.
+#pragma once
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "params.h"
+
+namespace pbf {
+
+// Table 1 phases and finer timers. The pbf phase contains neighbors and solver.
+enum Phase : int { kPhasePBF = 0, kPhaseNeighbors, kPhaseSolver, kPhaseSmoothing, kPhaseCloudDynamics,
+                   kPhaseSplitting, kPhaseMerging, kNumPhases };
+inline const char* phase_name(int p) {
+    static const char* names[kNumPhases] = {"pbf", "neighbors", "solver", "smoothing", "cloud_dynamics",
+                                            "splitting", "merging"};
+    return names[p];
+}
+
+struct PhaseTotals {
+    double total_ms[kNumPhases] = {};
+    long long count[kNumPhases] = {};
+};
+
+struct StepStats {
+    long long step = 0;
+    double time = 0.0;
+    std::size_t n_particles = 0;
+    double density_error_mean = 0.0;
+    double density_error_max = 0.0;
+    double max_speed = 0.0;
+    double min_position[3] = {0, 0, 0};
+    double max_position[3] = {0, 0, 0};
+    std::vector<long long> level_counts;
+    long long splits = 0;                  // cumulative
+    long long merges = 0;                  // cumulative
+    long long split_capacity_rejects = 0;  // cumulative: splits refused because capacity was full
+    long long split_last = 0, merge_last = 0, capacity_rejects_last = 0;  // in the last step
+};
+
+// Thrown by step(): "unstable|<step>|<last good step>|<reason>|<id,id,...>".
+struct InstabilityError : std::runtime_error {
+    using std::runtime_error::runtime_error;
+};
+
+enum class ArrayKind { Float, Float4, UInt };
+
+struct ArrayView {
+    void* data = nullptr;
+    std::size_t n = 0;       // elements (Float4 counts as one)
+    ArrayKind kind = ArrayKind::Float;
+    bool on_device = false;  // CUDA memory
+};
+
+class ISolver {
+public:
+    virtual ~ISolver() = default;
+    virtual void set_fluid(std::size_t n, const float* pos3, const float* vel3, const float* temperature,
+                           const float* vapor, const float* cloud, const float* mass, const uint32_t* id) = 0;
+    virtual void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) = 0;
+    virtual void set_clock(long long step, double time, uint32_t next_id) = 0;
+    virtual void step(int n) = 0;
+    virtual std::size_t size() const = 0;
+    virtual long long step_count() const = 0;
+    virtual double time() const = 0;
+    virtual uint32_t next_id() const = 0;
+    // Copies an array to host memory (dst holds size() elements of the array's kind).
+    virtual ArrayView view(const std::string& name) = 0;
+    virtual void copy_to_host(const std::string& name, void* dst) = 0;
+    virtual PhaseTotals timings() const = 0;
+    virtual void reset_timings() = 0;
+    virtual StepStats stats() = 0;
+};
+
+std::unique_ptr<ISolver> make_cpu_solver(const Params& p);
+#ifdef PBF_WITH_CUDA
+std::unique_ptr<ISolver> make_cuda_solver(const Params& p);
+int cuda_device_count();
+std::string cuda_device_name();
+#endif
+
+}  // namespace pbf

@@ -1,0 +1,726 @@
+// The solver, written once over Thrust and compiled twice: by nvcc for the CUDA backend
+// (backend_cuda.cu) and by g++ with Thrust's OpenMP device system for the CPU backend
+// (backend_cpu.cpp). The including file defines PBF_BACKEND_NS (and PBF_BACKEND_CUDA for CUDA).
+//
+// One step (section 3-5 of the paper, Macklin & Mueller 2013 Algorithm 1):
+//   pbf:            predict x* = x + dt (v + dt g); sort by cell of x*; cell ranges        [neighbors]
+//                   iterations { rho, lambda (eq. 1-4, 18); dp with s_corr; walls }     [solver]
+//                   v = (x* - x) / dt; XSPH; vorticity confinement
+//   smoothing:      temperature (and optionally vapor, cloud) smoothing (eq. 12-17)
+//   cloud_dynamics: heating, buoyancy, adiabatic cooling, phase transition, latent heat (eq. 5-11)
+//   commit x = x* (wrapped on periodic axes)
+//   splitting / merging (section 5.2), then compaction
+#include <thrust/copy.h>
+#include <thrust/device_vector.h>
+#include <thrust/execution_policy.h>
+#include <thrust/fill.h>
+#include <thrust/for_each.h>
+#include <thrust/gather.h>
+#include <thrust/iterator/counting_iterator.h>
+#include <thrust/scan.h>
+#include <thrust/sequence.h>
+#include <thrust/sort.h>
+#include <thrust/transform_reduce.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "adaptivity.h"
+#include "common.h"
+#include "grid.h"
+#include "kernels.h"
+#include "params.h"
+#include "pbf_constraints.h"
+#include "smoothing.h"
+#include "solver_api.h"
+#include "thermodynamics.h"
+
+#ifdef PBF_BACKEND_CUDA
+#include <cuda_runtime.h>
+#endif
+
+namespace pbf {
+namespace PBF_BACKEND_NS {
+
+#ifdef THRUST_CUB_WRAPPED_NAMESPACE
+// Each backend wraps Thrust/CUB in its own namespace (set by CMake) so the two never collide.
+namespace thrust = ::THRUST_CUB_WRAPPED_NAMESPACE::thrust;
+#endif
+
+template <class T>
+using dvec = thrust::device_vector<T>;
+template <class T>
+T* raw(dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
+template <class T>
+const T* raw(const dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
+
+template <class F>
+void parallel_for(std::size_t n, const F& f) {
+    if (n == 0) return;
+    thrust::for_each(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f);
+}
+
+// ---- phase timers: CUDA events on the GPU, steady clock on the CPU ------------------------------
+#ifdef PBF_BACKEND_CUDA
+class PhaseClock {
+public:
+    ~PhaseClock() {
+        for (auto& e : events_) cudaEventDestroy(e);
+    }
+    void begin(int p) { open_[p] = record(); }
+    void end(int p) {
+        pairs_.push_back({p, open_[p], record()});
+        ran_[p] = true;
+    }
+    // Called once per step after the device work was issued: waits and accumulates.
+    void collect(PhaseTotals& totals) {
+        if (!pairs_.empty()) cudaEventSynchronize(events_[pairs_.back().stop]);
+        for (auto& pr : pairs_) {
+            float ms = 0.0f;
+            cudaEventElapsedTime(&ms, events_[pr.start], events_[pr.stop]);
+            totals.total_ms[pr.phase] += ms;
+        }
+        for (int p = 0; p < kNumPhases; ++p)
+            if (ran_[p]) totals.count[p] += 1, ran_[p] = false;
+        pairs_.clear();
+        used_ = 0;
+    }
+
+private:
+    struct Pair { int phase, start, stop; };
+    int record() {
+        if (used_ == events_.size()) {
+            cudaEvent_t e;
+            cudaEventCreate(&e);
+            events_.push_back(e);
+        }
+        cudaEventRecord(events_[used_]);
+        return int(used_++);
+    }
+    std::vector<cudaEvent_t> events_;
+    std::size_t used_ = 0;
+    std::vector<Pair> pairs_;
+    int open_[kNumPhases] = {};
+    bool ran_[kNumPhases] = {};
+};
+#else
+class PhaseClock {
+public:
+    void begin(int p) { open_[p] = std::chrono::steady_clock::now(); }
+    void end(int p) {
+        pending_[p] += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - open_[p]).count();
+        ran_[p] = true;
+    }
+    void collect(PhaseTotals& totals) {
+        for (int p = 0; p < kNumPhases; ++p) {
+            totals.total_ms[p] += pending_[p];
+            pending_[p] = 0.0;
+            if (ran_[p]) totals.count[p] += 1, ran_[p] = false;
+        }
+    }
+
+private:
+    std::chrono::steady_clock::time_point open_[kNumPhases];
+    double pending_[kNumPhases] = {};
+    bool ran_[kNumPhases] = {};
+};
+#endif
+
+// ---- small per-particle functors ----------------------------------------------------------------
+struct Predict {
+    Float4* vel;
+    const Float4* pos;
+    Float4* pred;
+    Vec3 gravity;
+    float dt;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i];
+        Vec3 u = xyz(v) + dt * gravity;
+        vel[i] = make_float4(u, v.w);
+        Float4 p = pos[i];
+        pred[i] = make_float4(xyz(p) + dt * u, p.w);
+    }
+};
+
+struct ComputeKeys {
+    GridGeometry g;
+    const Float4* pos;
+    uint32_t* keys;
+    PBF_HD void operator()(uint32_t i) const { keys[i] = cell_key(g, xyz(pos[i])); }
+};
+
+struct MarkCellRanges {
+    const uint32_t* keys;
+    uint32_t n;
+    uint32_t* start;
+    uint32_t* end;
+    PBF_HD void operator()(uint32_t i) const {
+        uint32_t k = keys[i];
+        if (i == 0 || keys[i - 1] != k) start[k] = i;
+        if (i == n - 1 || keys[i + 1] != k) end[k] = i + 1;
+    }
+};
+
+struct UpdateVelocity {
+    const Float4* pos;
+    const Float4* pred;
+    Float4* vel;
+    float inv_dt;
+    PBF_HD void operator()(uint32_t i) const {
+        vel[i] = make_float4(inv_dt * (xyz(pred[i]) - xyz(pos[i])), 0.0f);
+    }
+};
+
+struct Commit {
+    GridGeometry g;
+    const Float4* pred;
+    Float4* pos;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 p = pred[i];
+        pos[i] = make_float4(wrap_position(g, xyz(p)), p.w);
+    }
+};
+
+// Stability and diagnostics reduction over the fluid particles.
+struct Reduced {
+    float err_sum, err_max, speed2_max;
+    uint32_t bad;
+    float lo[3], hi[3];
+};
+
+struct ReduceOp {
+    PBF_HD Reduced operator()(const Reduced& a, const Reduced& b) const {
+        Reduced r;
+        r.err_sum = a.err_sum + b.err_sum;
+        r.err_max = fmaxf(a.err_max, b.err_max);
+        r.speed2_max = fmaxf(a.speed2_max, b.speed2_max);
+        r.bad = a.bad + b.bad;
+        for (int k = 0; k < 3; ++k) { r.lo[k] = fminf(a.lo[k], b.lo[k]); r.hi[k] = fmaxf(a.hi[k], b.hi[k]); }
+        return r;
+    }
+};
+
+struct ParticleCheck {
+    const Float4* pos;
+    const Float4* vel;
+    const float* density;
+    const float* temperature;  // nullptr without thermodynamics
+    float inv_rest_density;
+    bool unilateral;
+    float max_speed2;
+    PBF_HD bool is_bad(uint32_t i) const {
+        Vec3 x = xyz(pos[i]), v = xyz(vel[i]);
+        float s2 = dot(v, v);
+        bool ok = finite3(x) && finite3(v) && isfinite(s2) && s2 <= max_speed2;
+        if (temperature) ok = ok && isfinite(temperature[i]);
+        return !ok;
+    }
+    PBF_HD Reduced operator()(uint32_t i) const {
+        Reduced r;
+        float c = density[i] * inv_rest_density - 1.0f;
+        float e = unilateral ? fmaxf(c, 0.0f) : fabsf(c);
+        Vec3 x = xyz(pos[i]), v = xyz(vel[i]);
+        r.err_sum = e;
+        r.err_max = e;
+        r.speed2_max = dot(v, v);
+        r.bad = is_bad(i) ? 1u : 0u;
+        r.lo[0] = r.hi[0] = x.x;
+        r.lo[1] = r.hi[1] = x.y;
+        r.lo[2] = r.hi[2] = x.z;
+        return r;
+    }
+};
+
+struct IsBad {
+    ParticleCheck check;
+    PBF_HD bool operator()(uint32_t i) const { return check.is_bad(i); }
+};
+
+struct IsAlive {
+    const uint8_t* flags;
+    PBF_HD bool operator()(uint32_t i) const { return !(flags[i] & kDead); }
+};
+
+// ---- the solver ---------------------------------------------------------------------------------
+class Solver final : public ISolver {
+public:
+    explicit Solver(const Params& p) : p_(p) {
+        radii_ = make_level_radii(p_.h0, p_.mass0);
+        bool periodic[3] = {p_.periodic[0], p_.periodic[1], p_.periodic[2]};
+        grid_ = make_grid_geometry(p_.domain, periodic, p_.h0);
+        if (p_.adaptive) {
+            // The parallel merge colours cells modulo 3; periodic axes need a multiple of 3 cells.
+            for (int a = 0; a < 3; ++a) {
+                if (!grid_.periodic[a]) continue;
+                int n = (grid_.dims[a] / 3) * 3;
+                grid_.dims[a] = n < 3 ? 3 : n;
+                grid_.cell[a] = grid_.domain[a] / grid_.dims[a];
+                grid_.inv_cell[a] = 1.0f / grid_.cell[a];
+            }
+        }
+        cp_.rest_density = p_.rest_density;
+        cp_.inv_rest_density = 1.0f / p_.rest_density;
+        cp_.relaxation = p_.relaxation;
+        cp_.h0 = p_.h0;
+        cp_.unilateral = p_.unilateral;
+        cp_.scorr_k_lambda = p_.scorr_k * p_.lambda_ref;
+        cp_.scorr_n = p_.scorr_n;
+        float wdq = poly6(p_.scorr_dq * p_.h0 * p_.scorr_dq * p_.h0, p_.h0);
+        cp_.scorr_inv_wdq = wdq > 0.0f ? 1.0f / wdq : 0.0f;
+
+        atm_.ground_temperature = p_.ground_temperature;
+        atm_.lapse_rate = p_.lapse_rate;
+        atm_.buoyancy = p_.buoyancy;
+        atm_.cloud_gravity = p_.cloud_gravity;
+        atm_.dry_lapse_rate = p_.dry_lapse_rate;
+        atm_.latent_heat = p_.latent_heat;
+        atm_.phase_rate = p_.phase_rate;
+        atm_.sat_a = p_.saturation[0];
+        atm_.sat_b = p_.saturation[1];
+        atm_.sat_c = p_.saturation[2];
+        atm_.heating_rate = p_.heating_rate;
+        atm_.heating_depth = p_.heating_depth;
+        atm_.noise_frequency = p_.noise_frequency;
+        atm_.noise_amplitude = p_.noise_amplitude;
+        atm_.noise_offset[0] = p_.noise_offset[0];
+        atm_.noise_offset[1] = p_.noise_offset[1];
+        atm_.dt = p_.dt;
+
+        ap_.k_p = p_.k_p;
+        ap_.k_c = p_.k_c;
+        ap_.split_threshold = p_.split_threshold;
+        ap_.merge_threshold = p_.merge_threshold;
+        ap_.max_level = p_.max_level < kMaxLevels - 1 ? p_.max_level : kMaxLevels - 2;
+        ap_.min_distance = p_.min_distance;
+        ap_.h0 = p_.h0;
+        for (int l = 0; l < kMaxLevels; ++l) ap_.spacing[l] = p_.spacing * std::pow(2.0f, -l / 3.0f);
+        // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.
+        ap_.conflict_radius = ap_.spacing[1] + p_.min_distance * radii_.h[1];
+        if (ap_.conflict_radius > p_.h0) ap_.conflict_radius = p_.h0;
+
+        smoothing_ = p_.thermodynamics && p_.kappa > 0.0f &&
+                     (p_.smooth_fields[0] || p_.smooth_fields[1] || p_.smooth_fields[2]);
+        cell_start_.resize(grid_.num_cells());
+        cell_end_.resize(grid_.num_cells());
+    }
+
+    // -- set-up ------------------------------------------------------------------------------
+    void set_fluid(std::size_t n, const float* pos3, const float* vel3, const float* temperature,
+                   const float* vapor, const float* cloud, const float* mass, const uint32_t* id) override {
+        std::size_t cap = std::max<std::size_t>(n, p_.adaptive ? p_.capacity : n);
+        if (cap > 0xfffffff0u) throw std::length_error("particle capacity exceeds 2^32");
+        capacity_ = cap;
+        std::vector<Float4> hp(n), hv(n);
+        uint32_t max_id = 0;
+        for (std::size_t i = 0; i < n; ++i) {
+            hp[i] = Float4{pos3[3 * i], pos3[3 * i + 1], pos3[3 * i + 2], mass[i]};
+            hv[i] = Float4{vel3[3 * i], vel3[3 * i + 1], vel3[3 * i + 2], 0.0f};
+            max_id = std::max(max_id, id[i]);
+        }
+        allocate(cap);
+        n_ = n;
+        thrust::copy(hp.begin(), hp.end(), pos_.begin());
+        thrust::copy(hv.begin(), hv.end(), vel_.begin());
+        thrust::copy(id, id + n, id_.begin());
+        if (p_.thermodynamics) {
+            thrust::copy(temperature, temperature + n, temperature_.begin());
+            thrust::copy(vapor, vapor + n, vapor_.begin());
+            thrust::copy(cloud, cloud + n, cloud_.begin());
+        }
+        next_id_ = n ? max_id + 1 : 0;
+        parallel_for(n_, Commit{grid_, raw(pos_), raw(pos_)});  // wrap into the periodic box
+    }
+
+    void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) override {
+        nb_ = n;
+        if (n == 0) {
+            bpos_.clear(); btemperature_.clear(); bvapor_.clear(); bstart_.clear(); bend_.clear();
+            return;
+        }
+        std::vector<Float4> hp(n);
+        for (std::size_t i = 0; i < n; ++i)
+            hp[i] = Float4{pos3[3 * i], pos3[3 * i + 1], pos3[3 * i + 2], p_.mass0};
+        // Sort boundary particles by cell once: they never move.
+        std::vector<uint32_t> keys(n), order(n);
+        for (std::size_t i = 0; i < n; ++i) { keys[i] = cell_key(grid_, xyz(hp[i])); order[i] = uint32_t(i); }
+        std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return keys[a] < keys[b]; });
+        std::vector<Float4> sp(n);
+        std::vector<float> st(n, 0.0f), sv(n, 0.0f);
+        std::vector<uint32_t> sk(n);
+        for (std::size_t i = 0; i < n; ++i) {
+            sp[i] = hp[order[i]];
+            sk[i] = keys[order[i]];
+            if (temperature) st[i] = temperature[order[i]];
+            if (vapor) sv[i] = vapor[order[i]];
+        }
+        bpos_.assign(sp.begin(), sp.end());
+        btemperature_.assign(st.begin(), st.end());
+        bvapor_.assign(sv.begin(), sv.end());
+        bcloud_.assign(n, 0.0f);
+        dvec<uint32_t> dkeys(sk.begin(), sk.end());
+        bstart_.assign(grid_.num_cells(), 0u);
+        bend_.assign(grid_.num_cells(), 0u);
+        parallel_for(n, MarkCellRanges{raw(dkeys), uint32_t(n), raw(bstart_), raw(bend_)});
+    }
+
+    void set_clock(long long step, double time, uint32_t next_id) override {
+        step_ = step;
+        time_ = time;
+        last_good_ = step;
+        next_id_ = std::max(next_id_, next_id);
+    }
+
+    // -- stepping ----------------------------------------------------------------------------
+    void step(int n) override {
+        for (int s = 0; s < n; ++s) {
+            if (p_.adaptive) do_step<true>(); else do_step<false>();
+            clock_.collect(totals_);
+            if (step_ % p_.check_every == 0) check();
+        }
+    }
+
+    std::size_t size() const override { return n_; }
+    long long step_count() const override { return step_; }
+    double time() const override { return time_; }
+    uint32_t next_id() const override { return next_id_; }
+
+    ArrayView view(const std::string& name) override {
+        ArrayView v;
+#ifdef PBF_BACKEND_CUDA
+        v.on_device = true;
+#endif
+        auto f4 = [&](dvec<Float4>& a, std::size_t n) { v.data = raw(a); v.n = n; v.kind = ArrayKind::Float4; };
+        auto f1 = [&](dvec<float>& a, std::size_t n) { v.data = raw(a); v.n = n; v.kind = ArrayKind::Float; };
+        if (name == "position") f4(pos_, n_);
+        else if (name == "velocity") f4(vel_, n_);
+        else if (name == "id") { v.data = raw(id_); v.n = n_; v.kind = ArrayKind::UInt; }
+        else if (name == "temperature" && p_.thermodynamics) f1(temperature_, n_);
+        else if (name == "vapor" && p_.thermodynamics) f1(vapor_, n_);
+        else if (name == "cloud" && p_.thermodynamics) f1(cloud_, n_);
+        else if (name == "density") f1(density_, n_);
+        else if (name == "boundary_position") f4(bpos_, nb_);
+        else if (name == "boundary_temperature") f1(btemperature_, nb_);
+        else if (name == "boundary_vapor") f1(bvapor_, nb_);
+        else throw std::invalid_argument("unknown or inactive array '" + name + "'");
+        if (v.n == 0) v.data = nullptr;
+        return v;
+    }
+
+    void copy_to_host(const std::string& name, void* dst) override {
+        ArrayView v = view(name);
+        if (v.n == 0) return;
+        std::size_t bytes = v.n * (v.kind == ArrayKind::Float4 ? 16 : 4);
+#ifdef PBF_BACKEND_CUDA
+        cudaError_t err = cudaMemcpy(dst, v.data, bytes, cudaMemcpyDeviceToHost);
+        if (err != cudaSuccess) throw std::runtime_error(std::string("cudaMemcpy: ") + cudaGetErrorString(err));
+#else
+        std::copy(static_cast<const char*>(v.data), static_cast<const char*>(v.data) + bytes, static_cast<char*>(dst));
+#endif
+    }
+
+    PhaseTotals timings() const override { return totals_; }
+    void reset_timings() override { totals_ = PhaseTotals{}; }
+
+    StepStats stats() override {
+        StepStats s = last_stats_;
+        s.step = step_;
+        s.time = time_;
+        s.n_particles = n_;
+        if (n_ > 0) {
+            Reduced r = reduce_checks();
+            s.density_error_mean = r.err_sum / double(n_);
+            s.density_error_max = r.err_max;
+            s.max_speed = std::sqrt(double(r.speed2_max));
+            for (int k = 0; k < 3; ++k) { s.min_position[k] = r.lo[k]; s.max_position[k] = r.hi[k]; }
+        }
+        std::vector<Float4> hp(n_);
+        if (n_) thrust::copy(pos_.begin(), pos_.begin() + n_, hp.begin());
+        s.level_counts.assign(std::size_t(std::max(p_.max_level, 0) + 1), 0);
+        for (auto& q : hp) {
+            int l = radii_.level_of_mass(q.w);
+            if (l >= int(s.level_counts.size())) s.level_counts.resize(l + 1, 0);
+            s.level_counts[l] += 1;
+        }
+        return s;
+    }
+
+private:
+    void allocate(std::size_t cap) {
+        pos_.resize(cap); pred_.resize(cap); pos_tmp_.resize(cap);
+        vel_.resize(cap); vel_tmp_.resize(cap);
+        id_.resize(cap); uint_tmp_.resize(cap);
+        lambda_.resize(cap); density_.resize(cap);
+        keys_.resize(cap); perm_.resize(cap);
+        float_tmp_.resize(cap);
+        if (p_.vorticity > 0.0f) omega_.resize(cap);
+        if (p_.thermodynamics) {
+            temperature_.resize(cap); vapor_.resize(cap); cloud_.resize(cap);
+        }
+        if (smoothing_) {
+            for (int k = 0; k < 3; ++k)
+                if (p_.smooth_fields[k]) smooth_out_[k].resize(cap);
+        }
+        if (p_.adaptive) {
+            flags_.resize(cap); energy_.resize(cap); split_count_.resize(cap); split_slot_.resize(cap);
+        }
+    }
+
+    CellRanges fluid_ranges(const dvec<Float4>& positions) const {
+        return CellRanges{raw(positions), raw(cell_start_), raw(cell_end_)};
+    }
+    CellRanges boundary_ranges() const {
+        if (nb_ == 0) return CellRanges{nullptr, nullptr, nullptr};
+        return CellRanges{raw(bpos_), raw(bstart_), raw(bend_)};
+    }
+
+    // Permute the first n_ entries of every particle array by perm_ (gather).
+    template <class T>
+    void permute(dvec<T>& a, dvec<T>& tmp) {
+        thrust::gather(thrust::device, perm_.begin(), perm_.begin() + n_, a.begin(), tmp.begin());
+        a.swap(tmp);
+    }
+    void permute_all(bool with_pred) {
+        permute(pos_, pos_tmp_);
+        if (with_pred) permute(pred_, pos_tmp_);
+        else permute(density_, float_tmp_);  // compaction keeps each particle's last density
+        permute(vel_, vel_tmp_);
+        permute(id_, uint_tmp_);
+        if (p_.thermodynamics) {
+            permute(temperature_, float_tmp_);
+            permute(vapor_, float_tmp_);
+            permute(cloud_, float_tmp_);
+        }
+    }
+
+    void build_neighbor_grid() {
+        parallel_for(n_, ComputeKeys{grid_, raw(pred_), raw(keys_)});
+        thrust::sequence(thrust::device, perm_.begin(), perm_.begin() + n_);
+        thrust::sort_by_key(thrust::device, keys_.begin(), keys_.begin() + n_, perm_.begin());
+        permute_all(true);
+        thrust::fill(thrust::device, cell_start_.begin(), cell_start_.end(), 0u);
+        thrust::fill(thrust::device, cell_end_.begin(), cell_end_.end(), 0u);
+        parallel_for(n_, MarkCellRanges{raw(keys_), uint32_t(n_), raw(cell_start_), raw(cell_end_)});
+    }
+
+    template <bool Adaptive>
+    void do_step() {
+        const float dt = p_.dt;
+        // ---- PBF (Table 1 column "PBF") ----
+        clock_.begin(kPhasePBF);
+        clock_.begin(kPhaseNeighbors);
+        parallel_for(n_, Predict{raw(vel_), raw(pos_), raw(pred_),
+                                 Vec3{p_.gravity[0], p_.gravity[1], p_.gravity[2]}, dt});
+        build_neighbor_grid();
+        clock_.end(kPhaseNeighbors);
+
+        clock_.begin(kPhaseSolver);
+        CellRanges bnd = boundary_ranges();
+        for (int it = 0; it < p_.iterations; ++it) {
+            CellRanges fl = fluid_ranges(pred_);
+            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_)});
+            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_)});
+            pred_.swap(pos_tmp_);
+        }
+        parallel_for(n_, UpdateVelocity{raw(pos_), raw(pred_), raw(vel_), 1.0f / dt});
+        if (p_.xsph > 0.0f || p_.vorticity > 0.0f) {
+            CellRanges fl = fluid_ranges(pred_);
+            bool vort = p_.vorticity > 0.0f;
+            parallel_for(n_, ViscosityVorticity<Adaptive>{grid_, fl, radii_, p_.h0, p_.xsph, vort, raw(vel_),
+                                                          raw(density_), raw(vel_tmp_),
+                                                          vort ? raw(omega_) : nullptr});
+            vel_.swap(vel_tmp_);
+            if (vort)
+                parallel_for(n_, VorticityConfinement<Adaptive>{grid_, fl, radii_, p_.h0, p_.vorticity, dt,
+                                                                raw(density_), raw(omega_), raw(vel_)});
+        }
+        clock_.end(kPhaseSolver);
+        clock_.end(kPhasePBF);
+
+        // ---- temperature smoothing (section 4.1) ----
+        if (smoothing_) {
+            clock_.begin(kPhaseSmoothing);
+            dvec<float>* fields[3] = {&temperature_, &vapor_, &cloud_};
+            dvec<float>* bvals[3] = {&btemperature_, &bvapor_, &bcloud_};
+            SmoothingFields sf{};
+            for (int k = 0; k < 3; ++k) {
+                if (!p_.smooth_fields[k]) continue;
+                sf.in[k] = raw(*fields[k]);
+                sf.out[k] = raw(smooth_out_[k]);
+                sf.boundary[k] = nb_ ? raw(*bvals[k]) : nullptr;
+            }
+            parallel_for(n_, SmoothScalars<Adaptive>{grid_, fluid_ranges(pred_), bnd, radii_, p_.h0,
+                                                     cp_.inv_rest_density, p_.kappa, p_.smoothing_epsilon, sf});
+            for (int k = 0; k < 3; ++k)
+                if (p_.smooth_fields[k]) fields[k]->swap(smooth_out_[k]);
+            clock_.end(kPhaseSmoothing);
+        }
+
+        // ---- cloud dynamics (eq. 5-11) ----
+        if (p_.thermodynamics) {
+            clock_.begin(kPhaseCloudDynamics);
+            parallel_for(n_, CloudDynamics{atm_, raw(pos_), raw(pred_), raw(vel_), raw(temperature_), raw(vapor_),
+                                           raw(cloud_)});
+            clock_.end(kPhaseCloudDynamics);
+        }
+
+        clock_.begin(kPhasePBF);
+        parallel_for(n_, Commit{grid_, raw(pred_), raw(pos_)});
+        clock_.end(kPhasePBF);
+
+        step_ += 1;
+        time_ += dt;
+        if (p_.adaptive) adapt();
+    }
+
+    // ---- splitting and merging (section 5.2) ----
+    void adapt() {
+        const bool thermo = p_.thermodynamics;
+        // The grid built this step is still valid: positions only moved within their cells (wrapping).
+        clock_.begin(kPhaseMerging);
+        parallel_for(n_, MarkCandidates{ap_, radii_, raw(pos_), raw(cloud_), raw(energy_), raw(flags_)});
+        CellRanges fl = fluid_ranges(pos_);
+        for (int oz = 0; oz < 3; ++oz)
+            for (int oy = 0; oy < 3; ++oy)
+                for (int ox = 0; ox < 3; ++ox) {
+                    int off[3] = {ox, oy, oz};
+                    MergePass mp{grid_, fl, ap_, radii_, {ox, oy, oz}, {0, 0, 0}, raw(flags_), raw(pos_), raw(vel_),
+                                 thermo ? raw(temperature_) : nullptr, thermo ? raw(vapor_) : nullptr,
+                                 thermo ? raw(cloud_) : nullptr};
+                    std::size_t threads = 1;
+                    for (int a = 0; a < 3; ++a) {
+                        int cnt = grid_.dims[a] > off[a] ? (grid_.dims[a] - off[a] + 2) / 3 : 0;
+                        mp.per_axis[a] = cnt;
+                        threads *= std::size_t(cnt);
+                    }
+                    parallel_for(threads, mp);
+                }
+        clock_.end(kPhaseMerging);
+
+        clock_.begin(kPhaseSplitting);
+        parallel_for(n_, DecideSplits{grid_, fl, ap_, radii_, raw(energy_), raw(id_), raw(flags_),
+                                      raw(split_count_), uint32_t(step_)});
+        thrust::exclusive_scan(thrust::device, split_count_.begin(), split_count_.begin() + n_, split_slot_.begin());
+        uint32_t last_slot = 0, last_count = 0;
+        if (n_) {
+            last_slot = split_slot_[n_ - 1];
+            last_count = split_count_[n_ - 1];
+        }
+        std::size_t winners = std::size_t(last_slot) + last_count;
+        std::size_t room = capacity_ - n_;
+        std::size_t splits = std::min(winners, room);
+        if (winners) {
+            parallel_for(n_, ApplySplits{grid_, ap_, radii_, uint32_t(n_), uint32_t(capacity_), next_id_,
+                                         uint32_t(step_), raw(split_slot_), raw(flags_), raw(pos_), raw(vel_),
+                                         raw(id_), raw(density_), thermo ? raw(temperature_) : nullptr,
+                                         thermo ? raw(vapor_) : nullptr, thermo ? raw(cloud_) : nullptr});
+        }
+        next_id_ += uint32_t(splits);
+        std::size_t n_before = n_;
+        n_ += splits;
+        clock_.end(kPhaseSplitting);
+
+        // Compaction: drop particles consumed by merges (kept in order, deterministic).
+        clock_.begin(kPhaseMerging);
+        auto end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                   thrust::counting_iterator<uint32_t>(uint32_t(n_)), perm_.begin(),
+                                   IsAlive{raw(flags_)});
+        std::size_t alive = std::size_t(end - perm_.begin());
+        std::size_t merges = n_ - alive;
+        if (merges) {
+            n_ = alive;
+            permute_all(false);
+        }
+        clock_.end(kPhaseMerging);
+
+        last_stats_.split_last = (long long)splits;
+        last_stats_.merge_last = (long long)merges;
+        last_stats_.capacity_rejects_last = (long long)(winners - splits);
+        last_stats_.splits += (long long)splits;
+        last_stats_.merges += (long long)merges;
+        last_stats_.split_capacity_rejects += (long long)(winners - splits);
+        (void)n_before;
+    }
+
+    // ---- stability checks ----
+    ParticleCheck make_check() {
+        float vmax = p_.max_velocity;
+        return ParticleCheck{raw(pos_), raw(vel_), raw(density_), p_.thermodynamics ? raw(temperature_) : nullptr,
+                             cp_.inv_rest_density, p_.unilateral, vmax * vmax};
+    }
+
+    Reduced reduce_checks() {
+        Reduced init;
+        init.err_sum = 0.0f; init.err_max = 0.0f; init.speed2_max = 0.0f; init.bad = 0;
+        for (int k = 0; k < 3; ++k) { init.lo[k] = INFINITY; init.hi[k] = -INFINITY; }
+        return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                        thrust::counting_iterator<uint32_t>(uint32_t(n_)), make_check(), init,
+                                        ReduceOp{});
+    }
+
+    void check() {
+        if (n_ == 0) return;
+        Reduced r = reduce_checks();
+        double mean_err = double(r.err_sum) / double(n_);
+        std::string reason;
+        if (r.bad > 0) {
+            reason = std::to_string(r.bad) + " particle(s) with NaN/Inf or speed above max_velocity = " +
+                     std::to_string(p_.max_velocity) + " m/s";
+        } else if (!(mean_err <= p_.max_density_error)) {
+            reason = "mean density error " + std::to_string(mean_err) + " above max_density_error = " +
+                     std::to_string(p_.max_density_error);
+        }
+        if (reason.empty()) {
+            last_good_ = step_;
+            return;
+        }
+        std::vector<uint32_t> ids;
+        if (r.bad > 0) {
+            dvec<uint32_t> idx(n_);
+            auto end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                       thrust::counting_iterator<uint32_t>(uint32_t(n_)), idx.begin(),
+                                       IsBad{make_check()});
+            std::size_t nbad = std::min<std::size_t>(std::size_t(end - idx.begin()), 16);
+            std::vector<uint32_t> hidx(nbad);
+            thrust::copy(idx.begin(), idx.begin() + nbad, hidx.begin());
+            for (uint32_t k : hidx) ids.push_back(id_[k]);
+        }
+        std::ostringstream msg;
+        msg << "unstable|" << step_ << "|" << last_good_ << "|" << reason << "|";
+        for (std::size_t k = 0; k < ids.size(); ++k) msg << (k ? "," : "") << ids[k];
+        throw InstabilityError(msg.str());
+    }
+
+    Params p_;
+    GridGeometry grid_{};
+    LevelRadii radii_{};
+    ConstraintParams cp_{};
+    AtmosphereParams atm_{};
+    AdaptParams ap_{};
+    bool smoothing_ = false;
+    std::size_t n_ = 0, nb_ = 0, capacity_ = 0;
+    long long step_ = 0, last_good_ = 0;
+    double time_ = 0.0;
+    uint32_t next_id_ = 0;
+
+    dvec<Float4> pos_, pred_, pos_tmp_, vel_, vel_tmp_, omega_;
+    dvec<uint32_t> id_, uint_tmp_, keys_, perm_, cell_start_, cell_end_;
+    dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
+    dvec<uint8_t> flags_;
+    dvec<float> energy_;
+    dvec<uint32_t> split_count_, split_slot_;
+    dvec<Float4> bpos_;
+    dvec<float> btemperature_, bvapor_, bcloud_;
+    dvec<uint32_t> bstart_, bend_;
+
+    PhaseClock clock_;
+    PhaseTotals totals_;
+    StepStats last_stats_;
+};
+
+}  // namespace PBF_BACKEND_NS
+}  // namespace pbf

@@ -1,0 +1,82 @@
+// Cloud dynamics of section 4, per particle, in the paper's order:
+//   ground heating        dT/dt = S_e(x, z)                            (eq. 5, simplex pattern)
+//   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6)
+//   adiabatic cooling     dT = -Gamma_d dy                             (eq. 7, dy = the step's rise)
+//   phase transition      dw/dt = -dv/dt = alpha (v - gamma)           (eq. 8-9)
+//                         gamma = min(A exp(B / (T + C)), v + w)      (eq. 10)
+//   latent heat           dT = Q dw                                    (eq. 11)
+// The phase transition is integrated exactly over the step for the linearised coupled system
+// (deficit D = v - gamma decays at rate alpha (1 + Q dgamma/dT)), so it is stable for any
+// alpha dt, and total water v + w is conserved by construction (v = q - w).
+#pragma once
+#include "common.h"
+#include "noise.h"
+
+namespace pbf {
+
+struct AtmosphereParams {
+    float ground_temperature, lapse_rate;
+    float buoyancy, cloud_gravity, dry_lapse_rate, latent_heat, phase_rate;
+    float sat_a, sat_b, sat_c;
+    float heating_rate, heating_depth, noise_frequency, noise_amplitude, noise_offset[2];
+    float dt;
+
+    PBF_HD float environment_temperature(float y) const { return ground_temperature - lapse_rate * y; }
+    PBF_HD float saturation(float T) const { return sat_a * expf(sat_b / (T + sat_c)); }
+    // Relative heating S / S_e at ground position (x, z) (eq. 5).
+    PBF_HD float heating_pattern(float x, float z) const {
+        double n = simplex2(double(x) * noise_frequency + noise_offset[0],
+                            double(z) * noise_frequency + noise_offset[1]);
+        float s = 1.0f + noise_amplitude * float(n);
+        return s > 0.0f ? s : 0.0f;
+    }
+};
+
+// Exact-exponential phase transition with latent heat (eq. 9-11) over dt; updates T, v, w.
+PBF_INLINE void phase_transition(const AtmosphereParams& a, float& T, float& v, float& w) {
+    float q = v + w;
+    float s = a.saturation(T);
+    float dw;
+    if (s < q) {
+        // gamma = s: D = v - s relaxes at k = alpha (1 + Q ds/dT)
+        float ds_dT = s * (-a.sat_b) / ((T + a.sat_c) * (T + a.sat_c));
+        float gain = 1.0f + a.latent_heat * ds_dT;
+        float D = v - s;
+        dw = D * (-expm1f(-a.phase_rate * gain * a.dt)) / gain;
+    } else {
+        // gamma = q (sub-saturated even with all cloud evaporated): w decays exponentially
+        dw = -w * (-expm1f(-a.phase_rate * a.dt));
+    }
+    if (dw < -w) dw = -w;
+    float w_new = w + dw;
+    T += a.latent_heat * (w_new - w);
+    w = w_new;
+    v = q - w_new;
+}
+
+struct CloudDynamics {
+    AtmosphereParams a;
+    const Float4* pos_old;   // positions at the start of the step
+    const Float4* pos_new;   // positions after the PBF solve
+    Float4* vel;
+    float* temperature;
+    float* vapor;
+    float* cloud;
+    PBF_HD void operator()(uint32_t i) const {
+        Vec3 x = xyz(pos_new[i]);
+        float T = temperature[i], v = vapor[i], w = cloud[i];
+        if (a.heating_rate > 0.0f && x.y < a.heating_depth)
+            T += a.heating_rate * a.heating_pattern(x.x, x.z) * a.dt;                      // eq. 5
+        float T0 = a.environment_temperature(x.y);
+        float accel = a.buoyancy * (T - T0) / T0 - a.cloud_gravity * w;                    // eq. 6
+        Float4 u = vel[i];
+        vel[i] = Float4{u.x, u.y + a.dt * accel, u.z, u.w};
+        T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
+        phase_transition(a, T, v, w);                                                      // eq. 9-11
+        temperature[i] = T;
+        vapor[i] = v;
+        cloud[i] = w;
+    }
+};
+
+}  // namespace pbf
