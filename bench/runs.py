@@ -18,7 +18,7 @@ Layout of ``ROOT/<solver>-<scene>-<key16>/``::
     profiles.parquet   vertical profiles per diagnostic step (long format), when the statistics give them
     steps.csv          solver stats() after every step (record_steps runs, e.g. dam_break's front x_max)
     snapshots/step_NNNNNN.npz   a few full states (particles) or fields (grid), the final one included
-    checkpoint.npz     the latest good checkpoint (particle runs), with progress.json beside it
+    checkpoint.npz     the latest good checkpoint, with progress.json beside it
     partial/           rows gathered so far by an unfinished run (discarded up to its checkpoint on resume)
     result.json        written last, atomically: marks the run complete (stable or not)
 
@@ -302,11 +302,14 @@ class RunSpec:
 
 # ---- solver adapters ---------------------------------------------------------------------------
 def _flatten(values: dict) -> dict:
-    """Solver stats() as flat scalars: min_position -> min_position_x/_y/_z, level_counts -> level_0.."""
+    """Solver stats() as flat scalars: min_position -> min_position_x/_y/_z, level_counts -> level_0..,
+    time -> time_s (s); strings (the backend's name) dropped."""
     out = {}
     for name, value in values.items():
         if isinstance(value, str):
             continue
+        if name == "time":
+            name = "time_s"
         if name == "level_counts":
             for level, count in enumerate(value):
                 out[f"level_{level}"] = int(count)
@@ -318,20 +321,6 @@ def _flatten(values: dict) -> dict:
         else:
             out[name] = value.item() if isinstance(value, np.generic) else value
     return out
-
-
-def _split_diagnostics(row: dict) -> tuple[dict, dict]:
-    """Split a diagnostics dict into scalars (stats.parquet) and 1-D arrays (profiles.parquet)."""
-    scalars, profiles = {}, {}
-    for name, value in row.items():
-        if isinstance(value, (list, tuple, np.ndarray)) and np.ndim(value) >= 1:
-            profiles[name] = np.asarray(value)
-        elif isinstance(value, dict):
-            for sub, v in value.items():
-                (profiles if np.ndim(v) >= 1 else scalars)[f"{name}_{sub}"] = v
-        else:
-            scalars[name] = value.item() if isinstance(value, np.generic) else value
-    return scalars, profiles
 
 
 def _nonfinite_fields(arrays: dict) -> list[str]:
@@ -411,9 +400,16 @@ class ParticleAdapter:
                                        f"outside the walls [0, {size:g}] m", ids[:16], step - 1)
 
     @staticmethod
-    def diagnostics(sim, spec: RunSpec, state: dict) -> dict:
-        from bench.statistics import particle_diagnostics
-        return particle_diagnostics(state, sim.scene, resolution=spec.diagnostics_resolution)
+    def diagnostics(sim, spec: RunSpec, state: dict):
+        """(diagnostics row, vertical profiles) of a particle state, deposited once on the statistics grid.
+        Plain-fluid scenes have no cloud statistics: their rows hold the solver's stats() only."""
+        from bench import statistics
+        scene = sim.scene
+        if not scene.thermodynamics:
+            return {}, None
+        grid = statistics.deposit_state(state, scene, spec.diagnostics_resolution)
+        periodic = tuple(b == "periodic" for b in scene.domain.boundary)
+        return statistics.diagnostics(grid, periodic=periodic), statistics.vertical_profiles(grid)
 
 
 def _nonfinite_ids(state: dict) -> list[int]:
@@ -425,9 +421,12 @@ def _nonfinite_ids(state: dict) -> list[int]:
 
 
 class GridAdapter:
-    """grid_baseline.GridSimulation behind the run loop (no checkpoints: a rerun starts at step 0)."""
+    """grid_baseline.GridSimulation behind the run loop.
+
+    The grid checks itself for NaN/Inf and speed every time.check_every steps (GridInstabilityError);
+    its step functions are compiled before the clock starts (GridSimulation.warmup)."""
     solver = "grid"
-    can_checkpoint = False
+    can_checkpoint = True
 
     @staticmethod
     def resolve_backend(backend: str) -> str:
@@ -442,41 +441,57 @@ class GridAdapter:
 
     @staticmethod
     def instability_errors() -> tuple:
-        return (RunInstability,)
+        from grid_baseline import GridInstabilityError
+        return (GridInstabilityError, RunInstability)
 
     @staticmethod
     def create(spec: RunSpec):
         from grid_baseline import GridSimulation
-        kwargs = dict(cells_per_spacing=spec.cells_per_spacing, resolution=spec.resolution, seed=spec.seed)
-        if spec.dtype is not None:
-            kwargs["dtype"] = spec.dtype
-        return GridSimulation(spec.scene, **kwargs)
+        sim = GridSimulation(spec.scene, seed=spec.seed, cells_per_spacing=spec.cells_per_spacing,
+                             resolution=spec.resolution, dtype=spec.dtype, device=GridAdapter._device(spec))
+        sim.warmup()
+        return sim
 
-    load = save = None
+    @staticmethod
+    def _device(spec: RunSpec):
+        return {"auto": None, "cpu": "cpu", "cuda": "gpu"}[spec.backend]
+
+    @staticmethod
+    def load(path: Path, spec: RunSpec):
+        from grid_baseline import GridSimulation
+        sim = GridSimulation.load_snapshot(path, device=GridAdapter._device(spec), dtype=spec.dtype)
+        sim.warmup()
+        return sim
+
+    @staticmethod
+    def save(sim, path: Path) -> None:
+        sim.save_snapshot(path)
 
     @staticmethod
     def state(sim) -> dict:
-        return {k: np.asarray(v) for k, v in sim.fields().items()}
+        """fields() plus cell_size (3,) m and origin (3,) m (what bench.statistics reads)."""
+        fields = {k: np.asarray(v) for k, v in sim.fields().items()}
+        fields["cell_size"] = np.asarray(sim.cell_size, dtype=np.float64)
+        fields["origin"] = np.zeros(3)
+        return fields
 
     @staticmethod
     def size(sim) -> int:
-        return int(np.prod(sim.fields()["temperature"].shape))
+        return int(sim.n_cells)
 
     @staticmethod
     def step_row(sim) -> dict:
-        return {"step": sim.step_count, "time": float(sim.time)}
+        return _flatten(sim.stats())
 
     @staticmethod
     def check(sim, spec: RunSpec, row: dict | None) -> None:
-        bad = _nonfinite_fields(GridAdapter.state(sim))
-        if bad:
-            raise RunInstability(sim.step_count, f"NaN/Inf in grid fields ({', '.join(bad)})", (),
-                                 sim.step_count - 1)
+        """Nothing more to check: GridSimulation.step checks NaN/Inf and speed itself."""
 
     @staticmethod
-    def diagnostics(sim, spec: RunSpec, state: dict) -> dict:
-        from bench.statistics import grid_diagnostics
-        return grid_diagnostics(state)
+    def diagnostics(sim, spec: RunSpec, state: dict):
+        """(diagnostics row, vertical profiles) of the grid's fields."""
+        from bench import statistics
+        return statistics.grid_diagnostics(state, sim.scene), statistics.grid_profiles(state, sim.scene)
 
 
 ADAPTERS = {"particles": ParticleAdapter, "grid": GridAdapter}
@@ -586,7 +601,8 @@ class _Run:
     # -- progress bookkeeping ------------------------------------------------------------------
     def _resume(self):
         """(sim, progress) from checkpoint.npz + progress.json when they agree, else (None, fresh)."""
-        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "max_particles": 0, "segments": 0}
+        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0,
+                 "segments": 0}
         ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
         if not (self.adapter.can_checkpoint and ckpt.exists() and prog.exists()):
             return None, fresh
@@ -624,20 +640,17 @@ class _Run:
             raise RunInstability(step, f"NaN/Inf in {', '.join(bad)}", ids, step - 1)
         if snapshot:
             _save_npz(self.dir / "snapshots" / f"step_{step:06d}.npz",
-                      {**state, "step": np.int64(step), "time": np.float64(sim.time)})
+                      {**state, "step": np.int64(step), "time_s": np.float64(sim.time)})
         if not self.spec.diagnostics:
             return
-        scalars, profiles = _split_diagnostics(self.adapter.diagnostics(sim, self.spec, state))
-        row = {**scalars, **(stats_row or {}), "step": step, "time": float(sim.time)}
-        self.rows.append(row)
-        if profiles:
-            length = {len(v) for v in profiles.values()}
-            if len(length) != 1:
-                raise ValueError(f"diagnostic profiles of different lengths: "
-                                 f"{ {k: len(v) for k, v in profiles.items()} }")
-            for i in range(length.pop()):
-                self.profile_rows.append({"step": step, "time": float(sim.time),
-                                          **{k: v[i].item() for k, v in profiles.items()}})
+        import pandas as pd
+        row, profiles = self.adapter.diagnostics(sim, self.spec, state)
+        when = {"step": step, "time_s": float(sim.time)}
+        extra = {k: v for k, v in (stats_row or {}).items() if k not in row}  # the shared statistics win
+        self.rows.append({**when, **row, **extra})
+        if profiles is not None:
+            for prof in pd.DataFrame(profiles).to_dict("records"):
+                self.profile_rows.append({**when, **prof})
 
     # -- the loop --------------------------------------------------------------------------------
     def run(self) -> RunResult:
@@ -660,6 +673,7 @@ class _Run:
             self.log(f"resume from checkpoint at step {resumed_from}")
         base_timings = progress["timings"]
         step_wall = float(progress["step_wall_s"])
+        timed_wall = float(progress["timed_wall_s"])      # wall time of the steps after the warm-up
         max_particles = max(int(progress["max_particles"]), self.adapter.size(sim))
         diag_steps = set(spec.diagnostic_steps())
         snap_steps = set(spec.snapshot_steps())
@@ -671,7 +685,7 @@ class _Run:
                    disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
         try:
             if sim.step_count == 0 and (0 in diag_steps or 0 in snap_steps):
-                self._record(sim, _flatten(sim.stats()) if spec.solver == "particles" else None, 0 in snap_steps)
+                self._record(sim, self.adapter.step_row(sim), 0 in snap_steps)
             while sim.step_count < total:
                 s0 = sim.step_count
                 targets = [total, s0 + chunk] + [s for s in diag_steps | snap_steps if s > s0]
@@ -682,7 +696,10 @@ class _Run:
                 n = min(targets) - s0
                 t0 = time.perf_counter()
                 sim.step(n)
-                step_wall += time.perf_counter() - t0
+                elapsed = time.perf_counter() - t0
+                step_wall += elapsed
+                if s0 >= spec.warmup_steps:
+                    timed_wall += elapsed
                 s = sim.step_count
                 row = self.adapter.step_row(sim)
                 self.adapter.check(sim, spec, row)
@@ -693,10 +710,11 @@ class _Run:
                     sim.reset_timings()
                     base_timings = {}
                 if s in diag_steps or s in snap_steps:
-                    self._record(sim, row if spec.solver == "particles" else None, s in snap_steps)
+                    self._record(sim, row, s in snap_steps)
                 if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and s < total:
                     self._checkpoint(sim, {"step": s, "timings": _merge_timings(base_timings, sim.timings()),
-                                           "step_wall_s": step_wall, "max_particles": max_particles,
+                                           "step_wall_s": step_wall, "timed_wall_s": timed_wall,
+                                           "max_particles": max_particles,
                                            "segments": progress["segments"] + 1})
                 bar.update(n)
                 if self.on_step is not None:
@@ -710,10 +728,11 @@ class _Run:
         finally:
             bar.close()
         timings = _merge_timings(base_timings, sim.timings())
-        return self._finish(sim, failure, timings, step_wall, max_particles, resumed_from,
+        return self._finish(sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                             time.perf_counter() - started)
 
-    def _finish(self, sim, failure, timings, step_wall, max_particles, resumed_from, wall) -> RunResult:
+    def _finish(self, sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
+                wall) -> RunResult:
         import pandas as pd
         spec = self.spec
         write_csv(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
@@ -732,12 +751,14 @@ class _Run:
             "stable": failure is None,
             "reason": None if failure is None else failure.reason,
             "step": sim.step_count if failure is None else failure.step,
-            "particles": [] if failure is None else list(failure.particles)[:16],
+            "particles": [] if failure is None else list(getattr(failure, "particles", []))[:16],
             "last_good_step": sim.step_count if failure is None else failure.last_good_step,
             "time_s": float(sim.time) if failure is None else None,
             "max_particles": max_particles if spec.solver == "particles" else None,
             "cells": max_particles if spec.solver == "grid" else None,
             "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
+            "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,
+            "step_ms": 1e3 * timed_wall / max(1, sim.step_count - spec.warmup_steps) if failure is None else None,
             "backend": backend, "device": device_description(backend),
             "code": self.identity["code"], "finished": _now(),
         }

@@ -81,7 +81,7 @@ def test_run_directory_layout(toy_solver, tmp_path):
     assert res.path.name.startswith("particles-growing-") and len(res.path.name.split("-")[-1]) == 16
     stats = res.stats()
     assert list(stats["step"]) == [0, 5, 10, 15, 20]
-    assert {"mean_height", "max_speed", "min_position_y", "level_0", "time"} <= set(stats.columns)
+    assert {"mean_height", "max_speed", "min_position_y", "level_0", "time_s"} <= set(stats.columns)
     steps = res.steps_table()
     assert list(steps["step"]) == list(range(1, 21))                  # stats() after every step
     prof = res.profiles()

@@ -119,8 +119,8 @@ class ToyAdapter(runs.ParticleAdapter):
         y = state["position"][:, 1].astype(np.float64)
         edges = np.linspace(0.0, sim.scene.domain.size[1], 5)
         counts = np.histogram(y, bins=edges)[0]
-        return {"mean_height": float(y.mean()), "z": 0.5 * (edges[1:] + edges[:-1]),
-                "fraction": counts / max(len(y), 1)}
+        return ({"mean_height": float(y.mean())},
+                {"z": 0.5 * (edges[1:] + edges[:-1]), "fraction": counts / max(len(y), 1)})
 
 
 @pytest.fixture

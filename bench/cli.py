@@ -1,0 +1,323 @@
+"""The ``cloudpbf`` command: single runs, the studies, the report, and the demo that does it all.
+
+    cloudpbf scenes                          list the shipped scenes
+    cloudpbf run growing --steps 50          one run of a scene (particles or --solver grid)
+    cloudpbf table1                          the paper's Table 1, measured here
+    cloudpbf compare growing                 particles (non-adaptive, adaptive) against the grid, >= 5 seeds
+    cloudpbf sweep                           run time against error, Pareto front
+    cloudpbf stress                          stability map (dt, iterations, heating, alpha*dt)
+    cloudpbf scaling                         ms per step against particle and cell counts
+    cloudpbf report                          HTML report from OUT/data
+    cloudpbf demo                            all of the above at a scale that fits this machine
+
+Bad arguments exit with code 2 and a message naming the argument and what is allowed.
+See docs/harness.md.
+"""
+from __future__ import annotations
+
+import sys
+import tomllib
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import click
+import typer
+
+app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                  rich_markup_mode=None,
+                  help="Adaptive cloud simulation with Position Based Fluids: runs, studies and the report.")
+
+DEFAULT_OUT = Path("reports/latest")
+
+
+class Solver(str, Enum):
+    particles = "particles"
+    grid = "grid"
+
+
+class Backend(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+class ScaleName(str, Enum):
+    auto = "auto"
+    smoke = "smoke"
+    cpu = "cpu"
+    gpu = "gpu"
+
+
+OutOpt = Annotated[Path, typer.Option("--out", help="output folder: data/ (CSV, JSON, renders) and index.html")]
+RunsRootOpt = Annotated[Optional[Path], typer.Option(
+    "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ in the repository)")]
+ScaleOpt = Annotated[ScaleName, typer.Option(
+    "--scale", help="smoke (CI, minutes), cpu (~50k particles), gpu (the paper's counts); auto: gpu if CUDA")]
+BackendOpt = Annotated[Backend, typer.Option("--backend", help="particle solver backend")]
+WorkersOpt = Annotated[Optional[int], typer.Option(
+    "--workers", min=1, max=4096, help="dask workers of the local cluster (default: CPU cores; 1 per GPU on GPU)")]
+SchedulerOpt = Annotated[Optional[str], typer.Option(
+    "--scheduler", help="address of an existing dask scheduler (e.g. tcp://host:8786) instead of a local cluster")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars or progress messages")]
+
+
+# ---- helpers ------------------------------------------------------------------------------------
+def _usage_error(message: str) -> click.UsageError:
+    return click.UsageError(message)
+
+
+def _load_scene(name: str, overrides: dict | None = None):
+    """A scene by name or path; unknown names list the shipped scenes (exit code 2)."""
+    from pbf_cuda.scene import SceneError, list_scenes, load_scene
+    path = Path(name)
+    if name not in list_scenes() and not (path.suffix == ".toml" and path.exists()):
+        raise typer.BadParameter(f"unknown scene '{name}'; shipped scenes: {', '.join(list_scenes())} "
+                                 f"(or a path to a .toml file)", param_hint="'SCENE'")
+    try:
+        return load_scene(name, **(overrides or {}))
+    except SceneError as exc:
+        raise _usage_error(str(exc)) from None
+
+
+def _parse_overrides(items: list[str] | None) -> dict:
+    """--set section.field=value (value in TOML syntax: 8, 0.5, true, "wall", [1, 2, 3])."""
+    out = {}
+    for item in items or []:
+        key, sep, raw = item.partition("=")
+        if not sep or "." not in key:
+            raise typer.BadParameter(f"'{item}': expected section.field=value, e.g. pbf.iterations=8",
+                                     param_hint="'--set'")
+        try:
+            value = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw                       # a bare word: a string
+        out[key.strip()] = value
+    return out
+
+
+def _parse_sizes(text: str | None, name: str, lo: int) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        sizes = [int(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise typer.BadParameter(f"'{text}': expected comma-separated integers, e.g. 250000,1000000",
+                                 param_hint=f"'{name}'") from None
+    if not sizes or min(sizes) < lo:
+        raise typer.BadParameter(f"'{text}': every size must be an integer >= {lo}", param_hint=f"'{name}'")
+    return sizes
+
+
+def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Backend, workers: Optional[int],
+             scheduler: Optional[str], quiet: bool):
+    from bench import runs
+    from bench.studies.context import StudyContext
+    from bench.studies.scales import resolve_scale
+    return StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
+                        backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+
+
+def _done(message: str, quiet: bool = False) -> None:
+    typer.echo(message)
+
+
+# ---- commands -------------------------------------------------------------------------------------
+@app.command()
+def scenes() -> None:
+    """List the shipped scenes with their particle counts and descriptions."""
+    from pbf_cuda.scene import list_scenes, load_scene
+    for name in list_scenes():
+        scene = load_scene(name)
+        kind = "cloud" if scene.thermodynamics else "fluid"
+        if scene.adaptive.enabled:
+            kind += ", adaptive"
+        typer.echo(f"{name:18s} {scene.estimated_particles():>9,} particles  {scene.time.steps:>5} steps  "
+                   f"[{kind}]  {scene.description}")
+
+
+@app.command()
+def run(
+    scene: Annotated[str, typer.Argument(help="scene name (see `cloudpbf scenes`) or path to a .toml file")],
+    solver: Annotated[Solver, typer.Option(help="particle solver or grid baseline")] = Solver.particles,
+    backend: BackendOpt = Backend.auto,
+    steps: Annotated[Optional[int], typer.Option(min=1, max=10**7, help="steps (default: the scene's time.steps)")] = None,
+    seed: Annotated[Optional[int], typer.Option(min=0, max=2**31 - 1, help="noise / initial-velocity seed")] = None,
+    particles: Annotated[Optional[int], typer.Option(
+        min=1, max=10**9, help="resample the scene to about this many particles")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option(
+        "--set", help="override a scene field, e.g. --set pbf.iterations=8 (repeatable)")] = None,
+    snapshot_every: Annotated[Optional[int], typer.Option(min=1, max=10**7, help="steps between diagnostics")] = None,
+    record_steps: Annotated[Optional[bool], typer.Option(
+        "--record-steps/--no-record-steps", help="stats() after every step (default: on for plain-fluid scenes)")] = None,
+    cells_per_spacing: Annotated[float, typer.Option(min=0.05, max=64.0, help="grid: cells per particle spacing")] = 1.0,
+    runs_root: RunsRootOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """One run of a scene through the run cache (a cached run returns at once).
+
+    Exit code 0 when the run is stable, 1 when it went unstable (the reason, step and particles are printed)."""
+    from bench import runs
+    scene_obj = _load_scene(scene, _parse_overrides(set_))
+    if particles is not None:
+        from pbf_cuda.scene import SceneError
+        try:
+            scene_obj = scene_obj.with_particle_count(particles)
+        except SceneError as exc:
+            raise _usage_error(f"--particles {particles}: {exc}") from None
+    if solver is Solver.grid and not scene_obj.thermodynamics:
+        raise typer.BadParameter(f"scene '{scene}' has no [atmosphere]; the grid baseline runs cloud scenes only",
+                                 param_hint="'SCENE'")
+    try:
+        spec = runs.RunSpec(solver.value, scene_obj, backend=backend.value, steps=steps, seed=seed,
+                            snapshot_every=snapshot_every, cells_per_spacing=cells_per_spacing,
+                            record_steps=(not scene_obj.thermodynamics) if record_steps is None else record_steps)
+    except ValueError as exc:
+        raise _usage_error(str(exc)) from None
+    result = runs.execute(spec, runs_root, quiet=quiet)
+    timings = result.timings()
+    typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
+    typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {seed}, backend {result.backend}, "
+               f"{result.max_particles or result.cells} {'particles (max)' if spec.solver == 'particles' else 'cells'}, "
+               f"{result.step_wall_s:.2f} s in steps")
+    for phase, t in timings.items():
+        typer.echo(f"  {phase:15s} {t['mean_ms']:10.3f} ms/step")
+    if not result.stable:
+        ids = ", ".join(map(str, result.particles)) or "none identified"
+        typer.echo(f"UNSTABLE at step {result.step}: {result.reason}; particles: {ids}; "
+                   f"last good step {result.last_good_step}", err=True)
+        raise typer.Exit(1)
+
+
+@app.command()
+def table1(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+           backend: BackendOpt = Backend.auto, quiet: QuietOpt = False) -> None:
+    """Table 1: per-phase ms of the four examples beside the paper's (OUT/data/table1.csv)."""
+    from bench.studies.table1 import TABLE1_COLUMNS, run_table1
+    with _context(out, runs_root, scale, backend, None, None, quiet) as ctx:
+        frame = run_table1(ctx)
+    typer.echo(frame[list(TABLE1_COLUMNS)].to_string(index=False))
+    _done(f"wrote {ctx.data / 'table1.csv'}")
+
+
+@app.command()
+def compare(
+    scene: Annotated[str, typer.Argument(help="a cloud scene (its NAME_adaptive twin is used when it ships)")] = "growing",
+    seeds: Annotated[Optional[int], typer.Option(min=5, max=1000, help="noise seeds per mode (>= 5)")] = None,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Particles (non-adaptive and adaptive) against the grid baseline over >= 5 seeds."""
+    from bench.studies.compare import run_compare
+    _load_scene(scene)
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        try:
+            frames = run_compare(ctx, scene, seeds)
+        except ValueError as exc:
+            raise _usage_error(str(exc)) from None
+    typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
+    _done(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
+
+
+@app.command()
+def sweep(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+          backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+          quiet: QuietOpt = False) -> None:
+    """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
+    import json
+    from bench.studies.sweep import run_sweep
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        frame = run_sweep(ctx)
+    typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
+               .to_string(index=False))
+    typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
+    _done(f"wrote {ctx.data / 'sweep.csv'}")
+
+
+@app.command()
+def stress(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+           backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+           quiet: QuietOpt = False) -> None:
+    """Stability map: dt, iterations, heating rate and alpha*dt; the largest stable dt."""
+    import json
+    from bench.studies.stress import run_stress
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        frame = run_stress(ctx)
+    typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
+    summary = json.loads((ctx.data / "stress_summary.json").read_text())
+    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s")
+    _done(f"wrote {ctx.data / 'stress.csv'}")
+
+
+@app.command()
+def scaling(
+    sizes: Annotated[Optional[str], typer.Option(help="particle counts, comma-separated (default: the scale's)")] = None,
+    grid_sizes: Annotated[Optional[str], typer.Option(help="n for n^3 grids, comma-separated (default: the scale's)")] = None,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, quiet: QuietOpt = False,
+) -> None:
+    """ms per step against particle count (pbf_scaling.csv) and grid cells (grid_scaling.csv)."""
+    import dataclasses
+    from bench.studies.scaling import GRID_COLUMNS, PBF_COLUMNS, run_scaling
+    particle_sizes = _parse_sizes(sizes, "--sizes", 100)
+    cell_sizes = _parse_sizes(grid_sizes, "--grid-sizes", 2)
+    with _context(out, runs_root, scale, backend, None, None, quiet) as ctx:
+        if particle_sizes or cell_sizes:
+            ctx.scale = dataclasses.replace(ctx.scale, scaling_particles=tuple(particle_sizes or ctx.scale.scaling_particles),
+                                            scaling_grid_cells=tuple(cell_sizes or ctx.scale.scaling_grid_cells))
+        frames = run_scaling(ctx)
+    typer.echo(frames["pbf_scaling"][list(PBF_COLUMNS)].to_string(index=False))
+    typer.echo(frames["grid_scaling"][list(GRID_COLUMNS)].to_string(index=False))
+    _done(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
+
+
+@app.command()
+def report(out: OutOpt = DEFAULT_OUT) -> None:
+    """Build OUT/index.html from what OUT/data holds (missing studies are shown as not run)."""
+    from bench.studies.demo import build_report
+    if not (out / "data").is_dir():
+        raise typer.BadParameter(f"{out / 'data'} does not exist; run a study (e.g. `cloudpbf demo`) first",
+                                 param_hint="'--out'")
+    typer.echo(f"report: {build_report(out)}")
+
+
+@app.command()
+def demo(
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+    only: Annotated[Optional[str], typer.Option(
+        help="comma-separated subset of: table1, scaling, compare, sweep, stress, renders")] = None,
+) -> None:
+    """Everything: environment, Table 1, scaling, compare, sweep, stress, renders, then the report.
+
+    Prints the path of index.html.  Exit code 1 when a study failed (the report shows which)."""
+    from bench.studies.demo import STUDIES, run_demo
+    chosen = tuple(s.strip() for s in only.split(",") if s.strip()) if only else STUDIES
+    bad = [s for s in chosen if s not in STUDIES]
+    if bad:
+        raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(STUDIES)}", param_hint="'--only'")
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        index, status = run_demo(ctx, only=chosen)
+    failed = [name for name, st in status.items() if not st["ok"]]
+    for name, st in status.items():
+        typer.echo(f"  {name:8s} {'ok' if st['ok'] else 'FAILED: ' + st['error'].splitlines()[0]}"
+                   + (f" ({st['seconds']} s)" if "seconds" in st else ""))
+    if index is not None:
+        typer.echo(f"report: {index}")
+    if failed:
+        raise typer.Exit(1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point (`cloudpbf`)."""
+    try:
+        app(args=argv, prog_name="cloudpbf")
+    except SystemExit as exc:
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

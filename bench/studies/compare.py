@@ -1,0 +1,104 @@
+"""Particles against the grid: the same cloud scene run by the particle solver (non-adaptive and
+adaptive) and by the grid baseline, over several noise seeds (the seed shifts the ground-heating
+pattern, eq. 5, identically in both solvers).
+
+Every run is analysed by the same code (bench.statistics): particles are deposited on the grid the
+grid baseline uses (one cell per non-adaptive particle spacing), so cover, base/top, objects and
+budgets are measured alike.  Outputs in OUT/data:
+
+* compare_timeseries.csv: solver, mode, seed, time_s, step, the diagnostics (DIAGNOSTIC_COLUMNS),
+  then solver-specific columns (n_particles, density_error_mean, max_speed, ...), device, commit
+* compare_profiles.csv: solver, mode, seed, time_s, step, z, cloud_fraction, temperature, vapor,
+  cloud, device, commit
+* compare_runs.csv: one row per run: solver, mode, seed, stable, reason, step, max_particles,
+  cells, step_wall_s, device, commit, run_dir
+"""
+from __future__ import annotations
+
+import pandas as pd
+
+from bench import runs
+from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
+from bench.studies.context import StudyContext
+from bench.studies.scales import scale_scene
+from pbf_cuda.scene import Scene, list_scenes, load_scene
+
+MODES = ("non-adaptive", "adaptive", "grid")
+SOLVER_OF_MODE = {"non-adaptive": "particles", "adaptive": "particles", "grid": "grid"}
+SOLVER_COLUMNS = ("n_particles", "level_0", "level_1", "level_2", "level_3", "density_error_mean",
+                  "density_error_max", "max_speed", "cfl", "substeps", "divergence_rel")
+MIN_SEEDS = 5
+
+
+def scene_pair(name: str) -> tuple[Scene, Scene]:
+    """(non-adaptive, adaptive) versions of a cloud scene.
+
+    NAME_adaptive is used when it ships; otherwise adaptivity is switched on with level-0 particles
+    twice the spacing (a level-3 particle then matches the non-adaptive size, as in the paper)."""
+    base_name = name[: -len("_adaptive")] if name.endswith("_adaptive") and name[:-9] in list_scenes() else name
+    base = load_scene(base_name)
+    if base.atmosphere is None:
+        raise ValueError(f"compare needs a cloud scene (one with an [atmosphere] section); '{name}' has none. "
+                         f"Cloud scenes: {', '.join(n for n in list_scenes() if load_scene(n).thermodynamics)}")
+    if base.adaptive.enabled:
+        base = base.replace(**{"adaptive.enabled": False,
+                               "particles.spacing": base.particles.spacing / 2 ** (base.adaptive.max_level / 3)})
+    if f"{base_name}_adaptive" in list_scenes():
+        adaptive = load_scene(f"{base_name}_adaptive")
+    else:
+        adaptive = base.replace(**{"adaptive.enabled": True, "adaptive.max_level": 3,
+                                   "particles.spacing": 2.0 * base.particles.spacing})
+    return base, adaptive
+
+
+def compare_specs(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[str, int, runs.RunSpec]]:
+    """(mode, seed, spec) for every mode and seed."""
+    if seeds < MIN_SEEDS:
+        raise ValueError(f"seeds = {seeds}: compare needs at least {MIN_SEEDS} seeds")
+    base, adaptive = (scale_scene(s, ctx.scale.particles, ctx.scale.step_fraction) for s in scene_pair(scene_name))
+    shape, _ = grid_for_scene(base)                  # one cell per non-adaptive spacing, for all three
+    out = []
+    for seed in range(seeds):
+        out.append(("non-adaptive", seed, runs.RunSpec("particles", base, backend=ctx.backend, seed=seed,
+                                                        diagnostics_resolution=shape)))
+        out.append(("adaptive", seed, runs.RunSpec("particles", adaptive, backend=ctx.backend, seed=seed,
+                                                    diagnostics_resolution=shape)))
+        out.append(("grid", seed, runs.RunSpec("grid", base, seed=seed, resolution=shape)))
+    return out
+
+
+def _labelled(frame: pd.DataFrame, mode: str, seed: int, ctx: StudyContext, device: str) -> pd.DataFrame:
+    frame = frame.copy()
+    for i, (key, value) in enumerate((("solver", SOLVER_OF_MODE[mode]), ("mode", mode), ("seed", seed))):
+        frame.insert(i, key, value)
+    frame["device"] = device
+    frame["commit"] = ctx.commit
+    return frame
+
+
+def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | None = None) -> dict[str, pd.DataFrame]:
+    """Run (or read) every mode x seed and write the three compare CSVs."""
+    plan = compare_specs(ctx, scene_name, seeds or ctx.scale.seeds)
+    results = ctx.run_parallel([spec for _, _, spec in plan], "compare")
+    series, profiles, table = [], [], []
+    head = ["solver", "mode", "seed", "time_s", "step"]
+    for (mode, seed, spec), res in zip(plan, results):
+        stats = res.stats()
+        if len(stats):
+            cols = ["time_s", "step", *DIAGNOSTIC_COLUMNS, *(c for c in SOLVER_COLUMNS if c in stats.columns)]
+            series.append(_labelled(stats[cols], mode, seed, ctx, res.device))
+        prof = res.profiles()
+        if len(prof):
+            profiles.append(_labelled(prof[["time_s", "step", *PROFILE_COLUMNS]], mode, seed, ctx, res.device))
+        table.append({"solver": spec.solver, "mode": mode, "seed": seed, "stable": res.stable, "reason": res.reason,
+                      "step": res.step, "max_particles": res.max_particles, "cells": res.cells,
+                      "step_wall_s": res.step_wall_s, "scene": spec.scene.name, "device": res.device,
+                      "commit": ctx.commit, "run_dir": str(res.path)})
+    out = {
+        "compare_timeseries": pd.concat(series, ignore_index=True) if series else pd.DataFrame(columns=head),
+        "compare_profiles": pd.concat(profiles, ignore_index=True) if profiles else pd.DataFrame(columns=head),
+        "compare_runs": pd.DataFrame(table),
+    }
+    for name, frame in out.items():
+        runs.write_csv(frame, ctx.data / f"{name}.csv")
+    return out

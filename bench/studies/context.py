@@ -1,0 +1,184 @@
+"""What every study shares: output folder, run cache, scale, and where runs execute.
+
+Timing studies (Table 1, scaling) run their specs one after another in this process.  The others
+(compare, sweep, stress) send every missing run to dask.distributed: a LocalCluster of worker
+processes by default (one per CPU core, each with one OpenMP/XLA thread; on a GPU machine one
+worker per visible GPU, pinned with CUDA_VISIBLE_DEVICES), or an existing scheduler
+(``--scheduler tcp://host:8786``) to spread a study over many machines.  Each task is one RunSpec;
+workers write into the run cache, which must then be a path every worker sees (a shared
+filesystem), and send back a small summary dict.  Runs already in the cache are not sent at all.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bench import runs
+from bench.studies import environment
+from bench.studies.scales import Scale
+
+__all__ = ["StudyContext", "StudyError"]
+
+
+class StudyError(RuntimeError):
+    """Some runs of a study failed (not instabilities: those are results).  Finished runs stay cached."""
+
+
+def _worker_env(threads: int) -> dict:
+    env = {"OMP_NUM_THREADS": str(threads),
+           "PYTHONPATH": os.pathsep.join([str(runs.REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    if threads == 1:
+        env["XLA_FLAGS"] = " ".join(filter(None, [os.environ.get("XLA_FLAGS"),
+                                                  "--xla_cpu_multi_thread_eigen=false",
+                                                  "intra_op_parallelism_threads=1"]))
+    if os.environ.get("CLOUDPBF_RUNS"):
+        env["CLOUDPBF_RUNS"] = os.environ["CLOUDPBF_RUNS"]
+    return env
+
+
+def local_cluster(n_workers: int, gpus: list[str] | None = None):
+    """A dask cluster on this machine: `n_workers` processes, or one per GPU index in `gpus`."""
+    from distributed import LocalCluster, Nanny, Scheduler, SpecCluster
+    cores = os.cpu_count() or 1
+    if gpus:
+        threads = max(1, cores // len(gpus))
+        workers = {f"gpu-{g}": {"cls": Nanny, "options": {
+            "nthreads": 1, "env": {**_worker_env(threads), "CUDA_VISIBLE_DEVICES": g}}} for g in gpus}
+        return SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": None}},
+                           silence_logs=logging.WARNING)
+    threads = max(1, cores // n_workers)
+    return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                        env=_worker_env(threads), silence_logs=logging.WARNING)
+
+
+@dataclass
+class StudyContext:
+    """Options shared by the studies (the CLI's common options)."""
+    out: Path
+    scale: Scale
+    runs_root: Path = field(default_factory=runs.default_root)
+    backend: str = "auto"
+    workers: int | None = None
+    scheduler: str | None = None
+    quiet: bool = False
+
+    def __post_init__(self):
+        self.out = Path(self.out).resolve()
+        self.runs_root = Path(self.runs_root).resolve()
+        if self.workers is not None and not 1 <= int(self.workers) <= 4096:
+            raise ValueError(f"workers = {self.workers}: expected an integer in [1, 4096]")
+        self._client = None
+        self._cluster = None
+
+    # ---- outputs -------------------------------------------------------------------------------
+    @property
+    def data(self) -> Path:
+        return self.out / "data"
+
+    @property
+    def commit(self) -> str:
+        return environment.commit()
+
+    def say(self, message: str) -> None:
+        if not self.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    def particle_backend(self) -> str:
+        return runs.ParticleAdapter.resolve_backend(self.backend)
+
+    # ---- running -------------------------------------------------------------------------------
+    def run_serial(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:
+        """Run specs here, one after another (timing studies: nothing else competes for the device)."""
+        out = []
+        for i, spec in enumerate(specs):
+            cached = runs.cached_result(spec, self.runs_root)
+            if cached is None:
+                self.say(f"{label}: run {i + 1}/{len(specs)}: {spec.solver} {spec.scene.name}")
+            out.append(cached or runs.execute(spec, self.runs_root, quiet=self.quiet))
+        return out
+
+    def run_parallel(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:
+        """Run the specs the cache lacks on the dask cluster; results in the order of `specs`."""
+        from tqdm.auto import tqdm
+        keys = [spec.key() for spec in specs]
+        unique = dict(zip(keys, specs))
+        done = {}
+        for key, spec in unique.items():
+            hit = runs.cached_result(spec, self.runs_root)
+            if hit is not None:
+                done[key] = hit
+        missing = [k for k in unique if k not in done]
+        failures = []
+        if missing:
+            self.say(f"{label}: {len(done)} runs cached, {len(missing)} to run on {self.cluster_description()}")
+            from distributed import as_completed
+            client = self.client()
+            futures = {client.submit(runs.execute_summary, unique[k], str(self.runs_root), pure=False,
+                                     key=f"{label}-{unique[k].solver}-{k[:16]}"): k for k in missing}
+            bar = tqdm(total=len(futures), desc=label, unit="run", disable=True if self.quiet else None)
+            for future in as_completed(futures):
+                key = futures[future]
+                try:
+                    summary = future.result()
+                    done[key] = runs.RunResult.load(summary["path"])
+                except Exception as exc:  # a crashed run: report it, keep the others
+                    spec = unique[key]
+                    failures.append(f"{spec.solver} {spec.scene.name} seed {spec.seed} "
+                                    f"({spec.directory(self.runs_root, key)}): {type(exc).__name__}: {exc}")
+                bar.update(1)
+            bar.close()
+        if failures:
+            raise StudyError(f"{label}: {len(failures)} of {len(unique)} runs failed (finished runs are cached; "
+                             "rerun to retry):\n  " + "\n  ".join(failures))
+        return [done[k] for k in keys]
+
+    def n_workers(self) -> int:
+        if self.workers:
+            return int(self.workers)
+        gpus = self._gpus()
+        return len(gpus) if gpus else (os.cpu_count() or 1)
+
+    def _gpus(self) -> list[str]:
+        """GPU indices for one worker each, when the particle runs go to CUDA."""
+        if self.scheduler or self.particle_backend() != "cuda":
+            return []
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        if visible:
+            return [v.strip() for v in visible.split(",") if v.strip()]
+        return [str(i) for i in range(max(1, environment.gpu_count()))]
+
+    def cluster_description(self) -> str:
+        if self.scheduler:
+            return f"the dask scheduler at {self.scheduler}"
+        gpus = self._gpus()
+        if gpus and not self.workers:
+            return f"a local dask cluster of {len(gpus)} GPU workers"
+        return f"a local dask cluster of {self.n_workers()} workers"
+
+    def client(self):
+        if self._client is None:
+            from distributed import Client
+            if self.scheduler:
+                self._client = Client(self.scheduler)
+            else:
+                gpus = [] if self.workers else self._gpus()
+                self._cluster = local_cluster(self.n_workers(), gpus)
+                self._client = Client(self._cluster)
+        return self._client
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

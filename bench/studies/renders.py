@@ -1,0 +1,77 @@
+"""The report's pictures, from cached runs (bench.render draws them; a missing OpenGL context leaves a
+NAME.unavailable.txt note with the reason instead of a PNG).
+
+* clouds_particles.png: the last state of the compare study's non-adaptive run (seed 0), particles
+  coloured by cloud w;
+* clouds_volume.png: the same particles deposited on the analysis grid, volume rendered;
+* figure1_unsmoothed.png / figure1_smoothed.png: the paper's Figure 1, the smoothing_slab scene
+  without (kappa = 0) and with temperature smoothing, seen from the front;
+* figure3_shape_energy.png: the paper's Figure 3, shape energy (eq. 20) of the adaptive run's
+  last state beside its cloud w.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from bench import render, runs, statistics
+from bench.studies.compare import compare_specs
+from bench.studies.context import StudyContext
+from bench.studies.scales import scale_slab
+from pbf_cuda.scene import load_scene
+
+RENDERS = ("clouds_particles.png", "clouds_volume.png", "figure1_unsmoothed.png", "figure1_smoothed.png",
+           "figure3_shape_energy.png")
+
+
+def slab_specs(ctx: StudyContext) -> tuple[runs.RunSpec, runs.RunSpec]:
+    """(unsmoothed, smoothed) runs of the Figure 1 slab at the context's scale."""
+    scene = scale_slab(load_scene("smoothing_slab"), ctx.scale.slab_particles, ctx.scale.step_fraction)
+    make = lambda s: runs.RunSpec("particles", s, backend=ctx.backend, seed=0, keep_snapshots=1)  # noqa: E731
+    return make(scene.replace(**{"smoothing.kappa": 0.0})), make(scene)
+
+
+def _last_state(res: runs.RunResult, out_png: Path) -> dict | None:
+    """The run's last stored state, or None after writing the render's note (an unstable run may have none)."""
+    try:
+        return res.snapshot()
+    except FileNotFoundError:
+        why = f"unstable at step {res.step}: {res.reason}" if not res.stable else "no stored state"
+        runs.atomic_write_text(render.note_path(out_png), f"the run {res.path.name} has no state to draw ({why})\n")
+        out_png.unlink(missing_ok=True)
+        return None
+
+
+def _draw(draw, out_png: Path, res: runs.RunResult, *args, **kwargs) -> Path | None:
+    state = _last_state(res, out_png)
+    return None if state is None else render.render_or_note(draw, out_png, state, *args, **kwargs)
+
+
+def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Path | None]:
+    """Draw every render from cached runs (running what is missing); returns name -> PNG or None (a note)."""
+    out = ctx.data / "renders"
+    out.mkdir(parents=True, exist_ok=True)
+    plan = compare_specs(ctx, scene_name, ctx.scale.seeds)
+    fixed = next(spec for mode, seed, spec in plan if mode == "non-adaptive" and seed == 0)
+    adaptive = next(spec for mode, seed, spec in plan if mode == "adaptive" and seed == 0)
+    unsmoothed, smoothed = slab_specs(ctx)
+    res_fixed, res_adaptive, res_raw, res_smooth = ctx.run_parallel([fixed, adaptive, unsmoothed, smoothed],
+                                                                    "renders")
+    done = {"clouds_particles.png": _draw(render.render_particles, out / "clouds_particles.png", res_fixed,
+                                          fixed.scene, color_by="cloud")}
+    state = _last_state(res_fixed, out / "clouds_volume.png")
+    if state is not None:
+        grid = statistics.deposit_state(state, fixed.scene, fixed.diagnostics_resolution)
+        done["clouds_volume.png"] = render.render_or_note(render.render_volume, out / "clouds_volume.png",
+                                                          grid["cloud"], grid["cell_size"], origin=grid["origin"])
+    else:
+        done["clouds_volume.png"] = None
+    for name, res, spec in (("figure1_unsmoothed.png", res_raw, unsmoothed),
+                            ("figure1_smoothed.png", res_smooth, smoothed)):
+        kappa = spec.scene.smoothing.kappa
+        done[name] = _draw(render.render_particles, out / name, res, spec.scene, color_by="cloud", view="front",
+                           title=f"smoothing_slab, kappa = {kappa:g}, step {res.step}")
+    done["figure3_shape_energy.png"] = _draw(render.render_shape_energy, out / "figure3_shape_energy.png",
+                                             res_adaptive, adaptive.scene)
+    for name, path in done.items():
+        ctx.say(f"renders: {name}: {'written' if path else 'unavailable (see ' + render.note_path(out / name).name + ')'}")
+    return done

@@ -1,0 +1,115 @@
+"""Cost per step against problem size, for the particle solver and the grid baseline.
+
+Particles: the growing-cloud scene (or --scene) resampled to N particles, 4 PBF iterations, two
+warm-up steps, then `timing_steps` timed steps.  ``step_ms`` is the wall time of one whole step
+(all phases, as a user sees it); ``pbf_ms`` the pbf phase (eq. 1-4 constraint solve plus velocity
+update) and ``neighbors_ms`` / ``solver_ms`` its sub-timers, each a mean over the timed steps.
+Grid: the same scene on n^3 cells, per dtype, measured by bench.grid_scaling (``step_ms`` is the
+grid's own mean step time, compiled before the clock starts).
+
+    python -m bench.studies.scaling --sizes 250000 1000000 4000000 --out reports/gpu/pbf_scaling.csv
+
+writes particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit (then pbf_ms, backend,
+scene, steps, stable, reason, run_dir) to --out.  Particle runs go through the run cache, so a rerun
+costs nothing.  For the grid alone: ``python -m bench.grid_scaling``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+from bench import runs
+from bench.studies import environment
+from pbf_cuda.scene import load_scene
+
+SCENE = "growing"
+WARMUP_STEPS = 2
+PBF_COLUMNS = ("particles", "iterations", "step_ms", "neighbors_ms", "solver_ms", "device", "commit")
+GRID_COLUMNS = ("cells", "step_ms", "dtype", "device", "commit")
+
+
+def _mean(timings: dict, phase: str):
+    return timings[phase]["mean_ms"] if phase in timings else None
+
+
+def pbf_scaling(sizes, backend: str = "auto", runs_root=None, scene_name: str = SCENE, iterations: int = 4,
+                timing_steps: int = 10, quiet: bool = False) -> pd.DataFrame:
+    """One timing run per size, one after another; a DataFrame with PBF_COLUMNS first."""
+    rows = []
+    for n in sizes:
+        scene = load_scene(scene_name).with_particle_count(int(n)).replace(**{
+            "pbf.iterations": int(iterations), "time.steps": WARMUP_STEPS + timing_steps,
+            "time.snapshot_every": WARMUP_STEPS + timing_steps})
+        spec = runs.RunSpec("particles", scene, backend=backend, diagnostics=False, keep_snapshots=0,
+                            warmup_steps=WARMUP_STEPS)
+        res = runs.execute(spec, runs_root, quiet=quiet)
+        t = res.timings()
+        rows.append({"particles": res.max_particles, "iterations": int(iterations),
+                     "step_ms": res.step_ms if res.stable else None,
+                     "neighbors_ms": _mean(t, "neighbors"), "solver_ms": _mean(t, "solver"),
+                     "device": res.device, "commit": environment.commit(), "pbf_ms": _mean(t, "pbf"),
+                     "backend": res.backend, "scene": scene_name, "steps": timing_steps,
+                     "stable": res.stable, "reason": res.reason, "run_dir": str(res.path)})
+    return pd.DataFrame(rows)
+
+
+def grid_scaling(sizes, scene_name: str = SCENE, dtypes=None, timing_steps: int = 10) -> pd.DataFrame:
+    """One measurement per n^3 grid and dtype on jax's default device, by bench.grid_scaling.measure
+    (compiled first, WARMUP_STEPS untimed steps, then `timing_steps`); a DataFrame with GRID_COLUMNS first."""
+    import jax
+    from bench.grid_scaling import measure
+    platform = jax.default_backend()
+    dtypes = dtypes or (("float32", "float64") if platform == "cpu" else ("float32",))
+    scene = load_scene(scene_name)
+    rows = []
+    for n in sizes:
+        for dtype in dtypes:
+            r = measure(scene, int(n), platform, dtype, timing_steps, WARMUP_STEPS)
+            device = environment.cpu_name() if platform == "cpu" else r["device"]
+            rows.append({"cells": r["cells"], "step_ms": float(r["step_ms"]), "dtype": dtype, "device": device,
+                         "commit": environment.commit(), "n": int(n), "wall_ms": r["wall_ms"],
+                         "compile_s": r["compile_s"], "substeps": r["substeps"], "platform": platform})
+    return pd.DataFrame(rows, columns=[*GRID_COLUMNS, "n", "wall_ms", "compile_s", "substeps", "platform"])
+
+
+def run_scaling(ctx) -> dict[str, pd.DataFrame]:
+    """The study at the context's scale: OUT/data/pbf_scaling.csv and grid_scaling.csv."""
+    scale = ctx.scale
+    ctx.say(f"scaling: particles {list(scale.scaling_particles)}, grid {list(scale.scaling_grid_cells)}^3")
+    pbf = pbf_scaling(scale.scaling_particles, ctx.backend, ctx.runs_root, timing_steps=scale.timing_steps,
+                      quiet=ctx.quiet)
+    runs.write_csv(pbf, ctx.data / "pbf_scaling.csv")
+    grid = grid_scaling(scale.scaling_grid_cells, timing_steps=scale.timing_steps)
+    runs.write_csv(grid, ctx.data / "grid_scaling.csv")
+    return {"pbf_scaling": pbf, "grid_scaling": grid}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.studies.scaling", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[250_000, 1_000_000, 4_000_000],
+                        help="particle counts (default: 250000 1000000 4000000)")
+    parser.add_argument("--out", type=Path, default=Path("reports/gpu/pbf_scaling.csv"))
+    parser.add_argument("--backend", choices=("auto", "cpu", "cuda"), default="auto")
+    parser.add_argument("--iterations", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per size (after 2 warm-up steps)")
+    parser.add_argument("--scene", default=SCENE)
+    parser.add_argument("--runs-root", type=Path, default=None)
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    bad = [v for v in args.sizes if v < 100]
+    if bad:
+        parser.error(f"--sizes {bad[0]}: particle counts must be >= 100")
+    if not 1 <= args.steps <= 10_000:
+        parser.error(f"--steps {args.steps}: allowed range [1, 10000]")
+    frame = pbf_scaling(args.sizes, args.backend, args.runs_root, args.scene, args.iterations, args.steps, args.quiet)
+    runs.write_csv(frame, args.out)
+    print(frame[list(PBF_COLUMNS)].to_string(index=False))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""Run time against error, for both methods, on the growing-cloud scene (one seed).
+
+Swept: the particle spacing (non-adaptive and adaptive), the PBF iterations and the adaptive split
+threshold at the middle spacing, and the grid's cell count.  Each method's reference is its finest
+run (particles: the most particles, non-adaptive, the scene's iterations; grid: the most cells).
+
+Error of a run against a reference (both from bench.statistics on their snapshots):
+
+    e_cover   = ||c(t) - c_ref(t)||_2 / ||c_ref(t)||_2        projected cloud cover over the snapshot times
+    e_profile = ||a(z) - a_ref(z)||_2 / ||a_ref(z)||_2        time-mean cloud-fraction profile a_c(z),
+                                                              interpolated onto the reference's heights
+    error     = (e_cover + e_profile) / 2
+
+``error_self`` is against the run's own method's reference, ``error_other`` against the other
+method's.  Particle runs are all deposited on one analysis grid (the middle spacing's), grid runs are
+analysed on their own cells.  A reference without any cloud gives no relative error (empty cells).
+Wall time is the time spent inside the solver's step() (analysis and I/O excluded).
+
+Outputs in OUT/data: sweep.csv (one row per run; ``pareto`` marks the runs no other run of the same
+method beats in both wall time and error_self) and sweep_verdict.json (adaptive against
+non-adaptive at equal error: the non-adaptive wall time interpolated, linearly in error, at each
+adaptive run's error).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+from bench import runs
+from bench.statistics import grid_for_scene
+from bench.studies.context import StudyContext
+from bench.studies.scales import scale_scene
+from pbf_cuda.scene import load_scene
+
+SCENE = "growing"
+
+
+def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
+    """Every run of the sweep: dict(method, parameter, value, mode, spec)."""
+    scale = ctx.scale
+    base = load_scene(scene_name)
+    adaptive = load_scene(f"{scene_name}_adaptive")
+    counts = sorted(scale.sweep_particles)
+    middle = counts[len(counts) // 2]
+    mid_scene = scale_scene(base, middle, scale.step_fraction)
+    analysis, _ = grid_for_scene(mid_scene)
+    plan = []
+
+    def particles(parameter, value, mode, scene):
+        spec = runs.RunSpec("particles", scene, backend=ctx.backend, seed=0, keep_snapshots=1,
+                            diagnostics_resolution=analysis)
+        plan.append(dict(method="particles", parameter=parameter, value=value, mode=mode, spec=spec))
+
+    for n in counts:
+        scene = scale_scene(base, n, scale.step_fraction)
+        particles("spacing", scene.particles.spacing, "non-adaptive", scene)
+        scene = scale_scene(adaptive, n, scale.step_fraction)
+        particles("adaptive_spacing", scene.particles.spacing, "adaptive", scene)
+    for it in scale.sweep_iterations:
+        particles("iterations", it, "non-adaptive", mid_scene.replace(**{"pbf.iterations": int(it)}))
+    mid_adaptive = scale_scene(adaptive, middle, scale.step_fraction)
+    for alpha in scale.sweep_split_thresholds:
+        merge = min(mid_adaptive.adaptive.merge_threshold, 0.5 * alpha)
+        particles("split_threshold", alpha, "adaptive",
+                  mid_adaptive.replace(**{"adaptive.split_threshold": float(alpha),
+                                          "adaptive.merge_threshold": float(merge)}))
+    size = max(mid_scene.domain.size)
+    for n in sorted(scale.sweep_grid_cells):
+        shape = tuple(max(2, int(round(n * s / size))) for s in mid_scene.domain.size)
+        plan.append(dict(method="grid", parameter="cells", value=n, mode="grid",
+                         spec=runs.RunSpec("grid", mid_scene, seed=0, resolution=shape, keep_snapshots=1)))
+    return plan
+
+
+# ---- error metrics ---------------------------------------------------------------------------------
+def _relative_l2(values: np.ndarray, reference: np.ndarray) -> float:
+    norm = float(np.linalg.norm(reference))
+    if norm == 0.0 or not np.all(np.isfinite(values)) or not np.all(np.isfinite(reference)):
+        return math.nan
+    return float(np.linalg.norm(values - reference)) / norm
+
+
+def cloud_signature(result: runs.RunResult) -> dict | None:
+    """Cover time series and time-mean cloud-fraction profile of a run (None: nothing to compare)."""
+    stats, prof = result.stats(), result.profiles()
+    if not len(stats) or not len(prof):
+        return None
+    mean_profile = prof.groupby("z", sort=True)["cloud_fraction"].mean()
+    return {"time": stats["time_s"].to_numpy(float), "cover": stats["cloud_cover"].to_numpy(float),
+            "z": mean_profile.index.to_numpy(float), "profile": mean_profile.to_numpy(float)}
+
+
+def errors(sig: dict | None, ref: dict | None) -> tuple[float, float, float]:
+    """(error, e_cover, e_profile) of a signature against a reference signature."""
+    if sig is None or ref is None:
+        return math.nan, math.nan, math.nan
+    cover = np.interp(ref["time"], sig["time"], sig["cover"])
+    e_cover = _relative_l2(cover, ref["cover"])
+    profile = np.interp(ref["z"], sig["z"], sig["profile"])
+    e_profile = _relative_l2(profile, ref["profile"])
+    return 0.5 * (e_cover + e_profile), e_cover, e_profile
+
+
+def pareto_mask(wall: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """True where no other point has wall <= and error <= with one strictly smaller (NaN: False)."""
+    ok = np.isfinite(wall) & np.isfinite(error)
+    out = np.zeros(len(wall), dtype=bool)
+    for i in np.flatnonzero(ok):
+        better_eq = ok & (wall <= wall[i]) & (error <= error[i])
+        strictly = (wall < wall[i]) | (error < error[i])
+        out[i] = not np.any(better_eq & strictly)
+    return out
+
+
+def verdict(frame: pd.DataFrame) -> dict:
+    """Adaptive against non-adaptive particles at equal error (against the particle reference)."""
+    fixed = frame[(frame.parameter == "spacing") & frame.stable].dropna(subset=["error_self"])
+    adapt = frame[(frame.parameter == "adaptive_spacing") & frame.stable].dropna(subset=["error_self"])
+    fixed = fixed.sort_values("error_self")
+    out = {"metric": "error_self = (e_cover + e_profile)/2 against the finest non-adaptive run",
+           "non_adaptive": fixed[["value", "particles", "wall_s", "error_self"]].to_dict("records"),
+           "adaptive": adapt[["value", "particles", "wall_s", "error_self"]].to_dict("records"),
+           "comparisons": []}
+    if len(fixed) < 2 or not len(adapt):
+        out["verdict"] = "not enough stable runs with a measurable error to compare"
+        return out
+    lo, hi = fixed.error_self.min(), fixed.error_self.max()
+    for row in adapt.itertuples():
+        if not lo <= row.error_self <= hi:
+            continue
+        wall_fixed = float(np.interp(row.error_self, fixed.error_self, fixed.wall_s))
+        out["comparisons"].append({"error": row.error_self, "wall_adaptive_s": row.wall_s,
+                                   "wall_non_adaptive_s": wall_fixed, "speedup": wall_fixed / row.wall_s})
+    if not out["comparisons"]:
+        out["verdict"] = (f"no overlap: adaptive errors {adapt.error_self.min():.3g}..{adapt.error_self.max():.3g}, "
+                          f"non-adaptive {lo:.3g}..{hi:.3g}")
+        return out
+    speedup = float(np.median([c["speedup"] for c in out["comparisons"]]))
+    out["median_speedup"] = speedup
+    word = "faster" if speedup > 1 else "slower"
+    factor = speedup if speedup > 1 else 1.0 / speedup
+    out["verdict"] = f"at equal error, adaptive runs are {factor:.2f}x {word} than non-adaptive runs (median)"
+    return out
+
+
+def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
+    """Run (or read) the sweep; write sweep.csv and sweep_verdict.json."""
+    plan = sweep_plan(ctx, scene_name)
+    results = ctx.run_parallel([p["spec"] for p in plan], "sweep")
+    sigs = [cloud_signature(r) if r.stable else None for r in results]
+
+    def reference(method):
+        idx = [i for i, p in enumerate(plan) if p["method"] == method and results[i].stable
+               and p["parameter"] in ("spacing", "cells")]
+        if not idx:
+            return None, None
+        key = (lambda i: results[i].max_particles) if method == "particles" else (lambda i: results[i].cells)
+        best = max(idx, key=key)
+        return best, sigs[best]
+
+    refs = {m: reference(m) for m in ("particles", "grid")}
+    rows = []
+    for i, (p, res) in enumerate(zip(plan, results)):
+        other = "grid" if p["method"] == "particles" else "particles"
+        e_self, c_self, p_self = errors(sigs[i], refs[p["method"]][1])
+        e_other, c_other, p_other = errors(sigs[i], refs[other][1])
+        scene = p["spec"].scene
+        rows.append({
+            "method": p["method"], "parameter": p["parameter"], "value": p["value"], "mode": p["mode"],
+            "wall_s": res.step_wall_s if res.stable else math.nan,
+            "error_self": e_self, "error_other": e_other, "error_cover_self": c_self, "error_profile_self": p_self,
+            "error_cover_other": c_other, "error_profile_other": p_other,
+            "particles": res.max_particles, "initial_particles": scene.estimated_particles()
+            if p["method"] == "particles" else None, "cells": res.cells,
+            "spacing_m": scene.particles.spacing, "iterations": scene.pbf.iterations,
+            "split_threshold": scene.adaptive.split_threshold if scene.adaptive.enabled else None,
+            "reference": i == refs[p["method"]][0], "stable": bool(res.stable), "reason": res.reason,
+            "steps": p["spec"].total_steps, "device": res.device, "commit": ctx.commit, "run_dir": str(res.path)})
+    frame = pd.DataFrame(rows)
+    frame["pareto"] = False
+    for method, group in frame.groupby("method"):
+        frame.loc[group.index, "pareto"] = pareto_mask(group.wall_s.to_numpy(float), group.error_self.to_numpy(float))
+    runs.write_csv(frame, ctx.data / "sweep.csv")
+    runs.atomic_write_json(ctx.data / "sweep_verdict.json", {**verdict(frame), "commit": ctx.commit})
+    return frame

@@ -1,0 +1,67 @@
+"""Table 1 of the paper: per-phase milliseconds per step for its four examples.
+
+Rows: growing / cycling clouds (Fig. 5a-d), each non-adaptive and adaptive, from the scenes
+growing, growing_adaptive, cycling, cycling_adaptive.  Columns are the paper's phases: ``pbf``
+(neighbour search + constraint iterations + velocity update; ``neighbors`` and ``solver`` are
+sub-timers inside it and are not added again), ``smoothing``, ``cloud_dynamics``, ``splitting``,
+``merging``; ``total_ms`` is the sum of the phases that ran (an empty cell: the phase did not
+run, e.g. no split/merge without adaptivity).  ``max_particles`` is the largest particle count
+seen during the run.  Timings are means over the steps after a short warm-up.
+
+At scale ``gpu`` the scenes run at the paper's particle counts; at ``cpu``/``smoke`` they are
+scaled down (see bench.studies.scales) and the ``scale`` column says so.  Output:
+OUT/data/table1.csv (columns TABLE1_COLUMNS, then backend, scale, steps, initial_particles,
+stable, reason, run_dir).
+"""
+from __future__ import annotations
+
+import pandas as pd
+
+from bench import runs
+from bench.studies.context import StudyContext
+from bench.studies.scales import scale_scene
+from pbf_cuda.scene import load_scene
+
+ROWS = (  # example, figure, mode, scene
+    ("growing", "5a", "non-adaptive", "growing"),
+    ("growing", "5b", "adaptive", "growing_adaptive"),
+    ("cycling", "5c", "non-adaptive", "cycling"),
+    ("cycling", "5d", "adaptive", "cycling_adaptive"),
+)
+PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
+TABLE1_COLUMNS = ("example", "figure", "mode", "max_particles", *(f"{p}_ms" for p in PHASES), "total_ms",
+                  "device", "commit")
+
+
+def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
+    """One timing run per row: the scaled scene, its own seed, no diagnostics, the final state kept."""
+    specs = []
+    for _, _, _, name in ROWS:
+        scene = scale_scene(load_scene(name), ctx.scale.particles, ctx.scale.step_fraction)
+        steps = scene.time.steps
+        specs.append(runs.RunSpec("particles", scene, backend=ctx.backend, diagnostics=False, keep_snapshots=1,
+                                  warmup_steps=min(5, steps // 10)))
+    return specs
+
+
+def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: StudyContext) -> dict:
+    example, figure, mode, _ = meta
+    timings = result.timings()
+    row = {"example": example, "figure": figure, "mode": mode, "max_particles": result.max_particles}
+    ran = [timings[p]["mean_ms"] for p in PHASES if p in timings]
+    for phase in PHASES:
+        row[f"{phase}_ms"] = timings[phase]["mean_ms"] if phase in timings else None
+    row["total_ms"] = sum(ran) if ran else None
+    row.update(device=result.device, commit=ctx.commit, backend=result.backend, scale=ctx.scale.environment_label,
+               steps=spec.total_steps, initial_particles=spec.scene.estimated_particles(), stable=result.stable,
+               reason=result.reason, run_dir=str(result.path))
+    return row
+
+
+def run_table1(ctx: StudyContext) -> pd.DataFrame:
+    """Run (or read from the cache) the four rows and write OUT/data/table1.csv."""
+    specs = table1_specs(ctx)
+    results = ctx.run_serial(specs, "table1")
+    frame = pd.DataFrame([table1_row(meta, spec, res, ctx) for meta, spec, res in zip(ROWS, specs, results)])
+    runs.write_csv(frame, ctx.data / "table1.csv")
+    return frame
