@@ -1,0 +1,610 @@
+"""Build the self-contained HTML report from a study's output directory.
+
+``build_report(OUT)`` reads only ``OUT/data`` (layout below) and writes
+``OUT/index.html``: one file, figures and renders embedded as base64 PNG, styles
+inline, no external URL, so it opens offline.  A missing input turns its section
+(or part of it) into a visible "not run in this study" note with the command that
+produces it; nothing is ever filled in.
+
+    OUT/data/environment.json        device, backend, commit, date, python, versions, scale
+    OUT/data/table1.csv              example,figure,mode,max_particles,<phase>_ms...,total_ms,device,commit
+    OUT/data/pbf_scaling.csv         particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit
+    OUT/data/grid_scaling.csv        cells,step_ms,dtype,device,commit
+    OUT/data/compare_timeseries.csv  solver,mode,seed,time_s, diagnostics (bench.statistics)
+    OUT/data/compare_profiles.csv    solver,mode,seed,time_s,z,cloud_fraction,temperature,vapor,cloud
+    OUT/data/sweep.csv               method,parameter,value,wall_s,error_self,error_other,...
+    OUT/data/stress.csv              parameter,value,stable,reason,step,particles,max_speed,density_error_mean
+    OUT/data/renders/*.png           clouds_particles, clouds_volume, figure1_unsmoothed, figure1_smoothed,
+                                     figure3_shape_energy (NAME.unavailable.txt: why a render is missing)
+
+A CSV not found in ``OUT/data`` is also looked for in ``OUT`` itself (the layout of
+the committed GPU reference results, e.g. ``reports/gpu/pbf_scaling.csv``).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jinja2
+import numpy as np
+import pandas as pd
+
+from . import plots
+
+__all__ = ["build_report", "SECTIONS", "COMMANDS", "PAPER_TABLE1"]
+
+PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
+TEMPLATES = Path(__file__).resolve().parent / "templates"
+PHASES = plots.PHASES
+
+SECTIONS = (
+    ("environment", "Environment"),
+    ("table1", "Table 1: phase timings against the paper"),
+    ("phases", "Per-phase cost"),
+    ("scaling", "Scaling"),
+    ("adaptive", "Adaptive against non-adaptive"),
+    ("compare", "Particles against the grid baseline"),
+    ("sweep", "Run time against error"),
+    ("stress", "Stability map"),
+    ("renders", "Cloud renders"),
+    ("figure1", "Figure 1: temperature smoothing"),
+    ("figure3", "Figure 3: shape energy"),
+)
+"""(id, title) of every section, in order; every id is always present in the page."""
+
+COMMANDS = {
+    "environment": "cloudpbf demo --out {out}",
+    "table1": "cloudpbf table1 --out {out}",
+    "pbf_scaling": "cloudpbf scaling --out {out}",
+    "grid_scaling": "python -m bench.grid_scaling --sizes 32 64 128 --out {out}/data/grid_scaling.csv",
+    "compare": "cloudpbf compare growing --out {out}",
+    "sweep": "cloudpbf sweep --out {out}",
+    "stress": "cloudpbf stress --out {out}",
+    "renders": "cloudpbf demo --out {out}",
+}
+"""The command that produces each input (shown when it is missing)."""
+
+
+# ------------------------------------------------------------------------------------------
+# page model
+# ------------------------------------------------------------------------------------------
+@dataclass
+class Block:
+    kind: str                  # "image", "table", "note", "text", "kv"
+    content: object = None     # data URI, HTML string, text, or [(key, value)]
+    caption: str = ""
+    level: str = "info"        # notes: "missing", "warn", "error", "info", "ok"
+    command: str = ""          # notes about missing inputs: the command that makes them
+
+
+@dataclass
+class Section:
+    id: str
+    title: str
+    blocks: list = field(default_factory=list)
+    provenance: str = ""
+
+    def add(self, kind, content=None, **kw):
+        self.blocks.append(Block(kind, content, **kw))
+
+    @property
+    def missing(self) -> bool:
+        return bool(self.blocks) and all(b.kind == "note" and b.level == "missing" for b in self.blocks)
+
+
+class Inputs:
+    """Reads OUT/data: CSVs (with the OUT/ fallback), environment.json and renders."""
+
+    def __init__(self, out_dir: Path):
+        self.out = Path(out_dir)
+        self.data = self.out / "data"
+        self.renders = self.data / "renders"
+        self._cache: dict[str, tuple[pd.DataFrame | None, Path | None]] = {}
+
+    def csv(self, name: str) -> tuple[pd.DataFrame | None, Path | None]:
+        if name not in self._cache:
+            found = None
+            for candidate in (self.data / f"{name}.csv", self.out / f"{name}.csv"):
+                if candidate.is_file():
+                    found = candidate
+                    break
+            if found is None:
+                self._cache[name] = (None, None)
+            else:
+                df = pd.read_csv(found)
+                self._cache[name] = (df if len(df) else None, found)
+        return self._cache[name]
+
+    def environment(self) -> dict | None:
+        path = self.data / "environment.json"
+        if not path.is_file():
+            return None
+        return json.loads(path.read_text())
+
+    def render(self, name: str) -> tuple[Path | None, str | None]:
+        """(png path, None) if rendered, (None, reason) if a note says why not, else (None, None)."""
+        png = self.renders / f"{name}.png"
+        if png.is_file() and png.stat().st_size > 0:
+            return png, None
+        note = self.renders / f"{name}.unavailable.txt"
+        if note.is_file():
+            return None, note.read_text().strip() or "no reason recorded"
+        return None, None
+
+
+# ------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------
+def _command(key: str, out: Path) -> str:
+    return COMMANDS[key].format(out=str(out))
+
+
+def _missing(section: Section, what: str, key: str, out: Path) -> None:
+    section.add("note", f"{what}: not run in this study.", level="missing", command=_command(key, out))
+
+
+def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) -> str:
+    def fmt(v):
+        if isinstance(v, (float, np.floating)):
+            if math.isnan(v):
+                return "–"
+            return float_format.format(v)
+        return v
+    shown = df.copy()
+    for col in shown.columns:
+        shown[col] = shown[col].map(fmt)
+    return shown.to_html(index=index, escape=True, border=0, classes="data", na_rep="–")
+
+
+def _provenance(*frames: pd.DataFrame | None, env: dict | None = None) -> str:
+    parts = []
+    for key in ("device", "commit"):
+        values = []
+        for df in frames:
+            if df is not None and key in df.columns:
+                values += [str(v) for v in df[key].dropna().unique()]
+        if not values and env and env.get(key):
+            values = [str(env[key])]
+        if values:
+            parts.append(f"{key}: {', '.join(dict.fromkeys(values))}")
+    return "; ".join(parts)
+
+
+def _scale_of(env: dict | None, df: pd.DataFrame | None = None) -> str:
+    if df is not None and "scale" in df.columns and df["scale"].notna().any():
+        return str(df["scale"].dropna().iloc[0])
+    return str((env or {}).get("scale", "unknown"))
+
+
+def _mean_sd(values: pd.Series) -> str:
+    values = pd.to_numeric(values, errors="coerce").dropna()
+    if values.empty:
+        return "–"
+    if len(values) == 1:
+        return f"{values.iloc[0]:.4g}"
+    return f"{values.mean():.4g} ± {values.std(ddof=1):.2g}"
+
+
+def _numeric(df: pd.DataFrame, col: str) -> pd.Series:
+    return pd.to_numeric(df[col], errors="coerce") if col in df.columns else pd.Series(np.nan, index=df.index)
+
+
+# ------------------------------------------------------------------------------------------
+# sections
+# ------------------------------------------------------------------------------------------
+def _environment(inp: Inputs, sec: Section, env: dict | None) -> None:
+    if env is None:
+        _missing(sec, "environment.json", "environment", inp.out)
+        return
+    rows = [(k, v) for k, v in env.items() if k != "versions" and not isinstance(v, (dict, list))]
+    sec.add("kv", rows)
+    versions = env.get("versions") or {}
+    if versions:
+        sec.add("table", _table(pd.DataFrame({"package": list(versions), "version": [str(v) for v in versions.values()]})),
+                caption="package versions")
+    scale = env.get("scale")
+    if scale and scale != "gpu":
+        sec.add("note", f"Scale '{scale}': a CPU run at scaled-down particle counts and step counts. Timings "
+                        "show the harness works and how costs divide; they are not comparable with the paper's GPU "
+                        "numbers (see reports/gpu for the GPU reference results).", level="warn")
+
+
+def _paper_table() -> pd.DataFrame:
+    paper = pd.read_csv(PAPER_TABLE1)
+    phase_cols = [f"{p}_ms" for p in PHASES if f"{p}_ms" in paper.columns]
+    paper["total_ms"] = paper[phase_cols].sum(axis=1, min_count=1)
+    return paper
+
+
+def _adaptive_speedups(df: pd.DataFrame) -> dict:
+    """example -> non-adaptive total / adaptive total."""
+    out = {}
+    for example, g in df.groupby("example"):
+        modes = dict(zip(g["mode"], pd.to_numeric(g["total_ms"], errors="coerce")))
+        if "adaptive" in modes and "non-adaptive" in modes and modes["adaptive"] > 0:
+            out[example] = modes["non-adaptive"] / modes["adaptive"]
+    return out
+
+
+def _measured_total(df: pd.DataFrame) -> pd.Series:
+    if "total_ms" in df.columns and df["total_ms"].notna().all():
+        return pd.to_numeric(df["total_ms"], errors="coerce")
+    cols = [f"{p}_ms" for p in PHASES if f"{p}_ms" in df.columns]
+    return df[cols].apply(pd.to_numeric, errors="coerce").sum(axis=1, min_count=1)
+
+
+def _table1(inp: Inputs, sec: Section, env: dict | None) -> None:
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        _missing(sec, "table1.csv", "table1", inp.out)
+        return
+    measured = measured.copy()
+    measured["total_ms"] = _measured_total(measured)
+    paper = _paper_table()
+    scale = _scale_of(env, measured)
+    merged = measured.merge(paper, on=["example", "mode"], how="left", suffixes=("", "_paper"))
+    speed_m = _adaptive_speedups(measured)
+    speed_p = _adaptive_speedups(paper)
+    rows = []
+    for r in merged.itertuples(index=False):
+        r = r._asdict()
+        row = {"example": r["example"], "figure": r.get("figure") if isinstance(r.get("figure"), str)
+               else r.get("figure_paper"), "mode": r["mode"],
+               "particles": r.get("max_particles"), "particles (paper)": r.get("max_particles_paper")}
+        for p in PHASES:
+            m, pp = r.get(f"{p}_ms"), r.get(f"{p}_ms_paper")
+            row[f"{p} ms"] = m
+            row[f"{p} ms (paper)"] = pp
+        row["total ms"] = r["total_ms"]
+        row["total ms (paper)"] = r.get("total_ms_paper")
+        total_p = r.get("total_ms_paper")
+        row["paper / measured"] = (total_p / r["total_ms"]) if total_p and r["total_ms"] else math.nan
+        if r["mode"] == "adaptive":
+            row["adaptive speedup"] = speed_m.get(r["example"], math.nan)
+            row["adaptive speedup (paper)"] = speed_p.get(r["example"], math.nan)
+        else:
+            row["adaptive speedup"] = math.nan
+            row["adaptive speedup (paper)"] = math.nan
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    table = table.loc[:, [c for c in table.columns if not table[c].isna().all() or "paper" in c or c == "total ms"]]
+    sec.add("table", _table(table), caption=(
+        "Milliseconds per step per phase, measured beside the paper's Table 1 (GeForce GTX 780 Ti). "
+        "'adaptive speedup' = non-adaptive total / adaptive total of the same example; "
+        "'paper / measured' = the paper's total / ours (> 1: faster than the paper)."))
+    if scale != "gpu":
+        sec.add("note", f"Scale '{scale}': CPU run, scaled down (particle counts in the 'particles' column, not the "
+                        "paper's). Compare the adaptive speedup, not absolute milliseconds.", level="warn")
+    missing_rows = set(paper["example"] + "/" + paper["mode"]) - set(measured["example"] + "/" + measured["mode"])
+    if missing_rows:
+        sec.add("note", "rows not measured in this study: " + ", ".join(sorted(missing_rows)), level="missing",
+                command=_command("table1", inp.out))
+    sec.provenance = _provenance(measured, env=env)
+
+
+def _phases(inp: Inputs, sec: Section, env: dict | None) -> None:
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        _missing(sec, "table1.csv (per-phase timings)", "table1", inp.out)
+        return
+    paper = _paper_table()
+    sec.add("image", plots.phase_bars(measured, paper), caption=(
+        "Stacked ms per step of the Table 1 phases (pbf includes neighbour search and constraint iterations). "
+        "Phases a run does not have (splitting and merging without adaptivity) are absent, not zero."))
+    shares = measured[["example", "mode"]].copy()
+    total = _measured_total(measured)
+    for p in PHASES:
+        if f"{p}_ms" in measured.columns and measured[f"{p}_ms"].notna().any():
+            shares[f"{p} %"] = 100.0 * pd.to_numeric(measured[f"{p}_ms"], errors="coerce") / total
+    sec.add("table", _table(shares, "{:.1f}"), caption="share of each phase in the measured step time (%)")
+    sec.provenance = _provenance(measured, env=env)
+
+
+def _scaling(inp: Inputs, sec: Section, env: dict | None) -> None:
+    pbf, pbf_path = inp.csv("pbf_scaling")
+    grid, grid_path = inp.csv("grid_scaling")
+    if pbf is None:
+        _missing(sec, "pbf_scaling.csv (particle solver step time against particle count)", "pbf_scaling", inp.out)
+    else:
+        sec.add("image", plots.pbf_scaling_plot(pbf), caption=f"PBF step (log-log) from {pbf_path.name}")
+        extra = pbf.copy()
+        if "step_ms" in extra and "particles" in extra:
+            extra["ns per particle"] = 1e6 * extra["step_ms"] / extra["particles"]
+        sec.add("table", _table(extra))
+    if grid is None:
+        _missing(sec, "grid_scaling.csv (grid baseline step time against cell count)", "grid_scaling", inp.out)
+    else:
+        sec.add("image", plots.grid_scaling_plot(grid), caption=f"grid baseline step (log-log) from {grid_path.name}")
+        extra = grid.copy()
+        if "step_ms" in extra and "cells" in extra:
+            extra["ns per cell"] = 1e6 * extra["step_ms"] / extra["cells"]
+        sec.add("table", _table(extra))
+    sec.provenance = _provenance(pbf, grid, env=env)
+
+
+PARTICLE_COUNT_COLUMNS = ("n_particles", "particles", "max_particles")
+
+
+def _adaptive(inp: Inputs, sec: Section, env: dict | None) -> None:
+    ts, _ = inp.csv("compare_timeseries")
+    table1, _ = inp.csv("table1")
+    particles = None
+    if ts is not None and "solver" in ts.columns:
+        particles = ts[ts["solver"] == "particles"]
+        if particles.empty or particles["mode"].nunique() < 2:
+            particles = None
+    if particles is None and table1 is None:
+        _missing(sec, "adaptive and non-adaptive particle runs (compare_timeseries.csv, table1.csv)", "compare",
+                 inp.out)
+        return
+    if table1 is not None:
+        measured = table1.copy()
+        measured["total_ms"] = _measured_total(measured)
+        speed = _adaptive_speedups(measured)
+        paper = _adaptive_speedups(_paper_table())
+        counts = measured.pivot_table(index="example", columns="mode", values="max_particles", aggfunc="max")
+        rows = []
+        for example in sorted(set(speed) | set(counts.index)):
+            rows.append({"example": example,
+                         "particles non-adaptive": counts.get("non-adaptive", pd.Series()).get(example, math.nan),
+                         "particles adaptive": counts.get("adaptive", pd.Series()).get(example, math.nan),
+                         "speedup (measured)": speed.get(example, math.nan),
+                         "speedup (paper)": paper.get(example, math.nan)})
+        sec.add("table", _table(pd.DataFrame(rows)), caption=(
+            "Step time: non-adaptive total / adaptive total (Table 1 rows); the paper reports "
+            + ", ".join(f"{k} {v:.2f}x" for k, v in paper.items()) + "."))
+    else:
+        _missing(sec, "table1.csv (adaptive speedup)", "table1", inp.out)
+    if particles is not None:
+        count_col = next((c for c in PARTICLE_COUNT_COLUMNS if c in particles.columns), None)
+        panels = ([(count_col, "particles")] if count_col else []) + [
+            ("cloud_cover", "cloud cover"), ("lwp_mean", "mean LWP (kg/m$^2$)"), ("total_water", "total water (kg)")]
+        sec.add("image", plots.timeseries_plot(particles, panels), caption=(
+            "Particle runs, non-adaptive and adaptive: mean over seeds, band = min..max over seeds."))
+        rows = []
+        for mode, g in particles.groupby("mode", sort=True):
+            last = g.sort_values("time_s").groupby("seed").tail(1)
+            onset = [_onset(gs) for _, gs in g.groupby("seed")]
+            row = {"mode": mode, "seeds": g["seed"].nunique(), "onset s": _mean_sd(pd.Series(onset)),
+                   "final cover": _mean_sd(last["cloud_cover"]), "final LWP kg/m2": _mean_sd(last.get("lwp_mean"))}
+            if count_col:
+                row["final particles"] = _mean_sd(last[count_col])
+                row["max particles"] = f"{pd.to_numeric(g[count_col]).max():.0f}"
+            rows.append(row)
+        sec.add("table", _table(pd.DataFrame(rows)), caption="mean ± standard deviation over seeds")
+    else:
+        _missing(sec, "compare_timeseries.csv with both particle modes (cloud statistics over time)", "compare",
+                 inp.out)
+    sec.provenance = _provenance(table1, ts, env=env)
+
+
+def _onset(g: pd.DataFrame) -> float:
+    from bench.statistics import onset_time
+    return onset_time(g)
+
+
+SUMMARY_COLUMNS = (("cloud_cover", "cover"), ("lwp_mean", "LWP kg/m2"), ("cloud_base", "base m"),
+                   ("cloud_top", "top m"), ("base_p10", "base p10 m"), ("top_p90", "top p90 m"),
+                   ("n_objects", "objects"))
+
+
+def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
+    ts, _ = inp.csv("compare_timeseries")
+    prof, _ = inp.csv("compare_profiles")
+    if ts is None and prof is None:
+        _missing(sec, "compare_timeseries.csv and compare_profiles.csv", "compare", inp.out)
+        return
+    if prof is not None:
+        sec.add("image", plots.profiles_plot(prof), caption=(
+            "Horizontal-mean vertical profiles at the last common time, particles deposited on a grid with the SPH "
+            "kernel, the grid baseline on its own grid; both through the same statistics code."))
+    else:
+        _missing(sec, "compare_profiles.csv", "compare", inp.out)
+    if ts is not None:
+        panels = list(plots.TIMESERIES_PANELS)
+        if "base_p10" in ts.columns and "top_p90" in ts.columns:
+            panels += [("base_p10", "cloud base, 10th percentile of columns (m)"),
+                       ("top_p90", "cloud top, 90th percentile of columns (m)")]
+        sec.add("image", plots.timeseries_plot(ts, panels), caption=(
+            "Cloud statistics against time: line = mean over seeds, band = min..max over seeds."))
+        rows = []
+        keys = [k for k in ("solver", "mode") if k in ts.columns]
+        for key, g in ts.groupby(keys, sort=True):
+            key = key if isinstance(key, tuple) else (key,)
+            last = g.sort_values("time_s").groupby("seed").tail(1) if "seed" in g else g.tail(1)
+            onset = [_onset(gs) for _, gs in g.groupby("seed")] if "seed" in g else [_onset(g)]
+            row = dict(zip(keys, key))
+            row["seeds"] = g["seed"].nunique() if "seed" in g else 1
+            row["onset s"] = _mean_sd(pd.Series(onset))
+            for col, label in SUMMARY_COLUMNS:
+                if col in last.columns:
+                    row[f"final {label}"] = _mean_sd(last[col])
+            rows.append(row)
+        sec.add("table", _table(pd.DataFrame(rows)), caption=(
+            "At each run's last time; mean ± standard deviation over seeds (onset: first time with cover > 0; "
+            "'–' where no cloud formed)."))
+        if "seed" in ts.columns and ts.groupby(keys)["seed"].nunique().min() < 5:
+            sec.add("note", "fewer than 5 seeds in at least one group: the spread is not well sampled.", level="warn")
+    else:
+        _missing(sec, "compare_timeseries.csv", "compare", inp.out)
+    sec.provenance = _provenance(ts, prof, env=env)
+
+
+def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, _ = inp.csv("sweep")
+    if df is None:
+        _missing(sec, "sweep.csv (run time against error)", "sweep", inp.out)
+        return
+    sec.add("image", plots.pareto_plot(df), caption=(
+        "Each point one run; error = difference of the cloud statistics from the finest run of the same method "
+        "(left) and of the other method (right); lines: Pareto fronts (no run is both faster and more accurate)."))
+    fronts = []
+    keys = [k for k in ("method", "mode") if k in df.columns]
+    for _, g in df.groupby(keys, sort=True):
+        fronts.append(plots.pareto_front(g[g["error_self"] > 0], "wall_s", "error_self"))
+    cols = [c for c in ("method", "mode", "parameter", "value", "wall_s", "error_self", "error_other") if c in df.columns]
+    if fronts:
+        sec.add("table", _table(pd.concat(fronts)[cols]), caption=(
+            "runs on the Pareto front of each method / mode (error_self; references with zero error excluded)"))
+    verdict = _verdict(df)
+    if verdict:
+        sec.add("text", verdict)
+    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns])),
+            caption="all runs")
+    sec.provenance = _provenance(df, env=env)
+
+
+def _verdict(df: pd.DataFrame) -> str:
+    """Adaptive against non-adaptive at equal error, from the Pareto fronts of each mode."""
+    if "mode" not in df.columns:
+        return ""
+    fronts = {}
+    for mode in ("non-adaptive", "adaptive"):
+        g = df[(df["mode"] == mode) & (df["error_self"] > 0)]
+        if len(g.dropna(subset=["wall_s", "error_self"])):
+            fronts[mode] = plots.pareto_front(g, "wall_s", "error_self")
+    if len(fronts) < 2:
+        return ""
+    level = max(f["error_self"].min() for f in fronts.values())  # an error both modes reach
+    cost = {m: float(f[f["error_self"] <= level]["wall_s"].min()) for m, f in fronts.items()}
+    faster = min(cost, key=cost.get)
+    slower = max(cost, key=cost.get)
+    ratio = cost[slower] / cost[faster] if cost[faster] > 0 else math.inf
+    return (f"At equal error (error_self <= {level:.3g}, the smallest error both particle modes reach), "
+            f"{faster} needs {cost[faster]:.3g} s and {slower} {cost[slower]:.3g} s: {faster} is "
+            f"{ratio:.2f}x faster.")
+
+
+def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, _ = inp.csv("stress")
+    if df is None:
+        _missing(sec, "stress.csv (stability sweep)", "stress", inp.out)
+        return
+    df = df.copy()
+    df["stable"] = df["stable"].map(plots._truthy)
+    sec.add("image", plots.stability_map(df), caption="green: ran to the end; red: stopped as unstable (reason shown)")
+    dt = df[df["parameter"] == "dt"]
+    if len(dt):
+        values = pd.to_numeric(dt["value"], errors="coerce")
+        stable = values[dt["stable"]]
+        unstable = values[~dt["stable"]]
+        text = (f"Largest stable dt: {stable.max():g} s." if len(stable) else "No dt in the sweep was stable.")
+        if len(unstable):
+            text += f" Smallest unstable dt: {unstable.min():g} s."
+        sec.add("text", text)
+    bad = df[~df["stable"]]
+    numeric = [c for c in ("max_speed", "density_error_mean") if c in df.columns]
+    finite = df[df["stable"]][numeric].apply(pd.to_numeric, errors="coerce")
+    if numeric and not np.isfinite(finite.to_numpy(dtype=float)).all():
+        sec.add("note", "a run marked stable has non-finite statistics: check stress.csv", level="error")
+    sec.add("text", f"{len(df)} runs, {int(df['stable'].sum())} stable, {len(bad)} unstable.")
+    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns])),
+            caption="all cases (an unstable run is stopped at the step the check caught it; its NaN never "
+                    "enters the statistics)")
+    sec.provenance = _provenance(df, env=env)
+
+
+def _render_blocks(inp: Inputs, sec: Section, names_captions) -> None:
+    for name, caption in names_captions:
+        png, reason = inp.render(name)
+        if png is not None:
+            sec.add("image", plots.png_file_uri(png), caption=caption)
+        elif reason is not None:
+            sec.add("note", f"{name}: render unavailable: {reason}", level="warn", command=_command("renders", inp.out))
+        else:
+            _missing(sec, f"render {name}.png", "renders", inp.out)
+
+
+def _renders(inp: Inputs, sec: Section, env: dict | None) -> None:
+    _render_blocks(inp, sec, [
+        ("clouds_particles", "particles with w > 1e-5 kg/kg, opacity rising with cloud density (clear air transparent)"),
+        ("clouds_volume", "volume render of the particles' cloud field deposited on the statistics grid"),
+    ])
+
+
+def _figure1(inp: Inputs, sec: Section, env: dict | None) -> None:
+    combined, _ = inp.render("figure1")
+    if combined is not None:
+        _render_blocks(inp, sec, [("figure1", "smoothing_slab scene seen from the front: (a) kappa = 0, (b) smoothed")])
+        return
+    _render_blocks(inp, sec, [
+        ("figure1_unsmoothed", "(a) smoothing_slab without temperature smoothing (kappa = 0): particles turn to "
+                               "cloud in isolation, no coherent shape"),
+        ("figure1_smoothed", "(b) the same with temperature smoothing (eq. 12-17, kappa = 0.1)"),
+    ])
+
+
+def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
+    _render_blocks(inp, sec, [
+        ("figure3_shape_energy", "shape energy E = k_p (1 - exp(-k_c w)) (eq. 20) of an adaptive run beside the "
+                                 "cloud density w: E marks thin cloud edges as split candidates where w alone is small"),
+    ])
+
+
+BUILDERS = {
+    "environment": _environment, "table1": _table1, "phases": _phases, "scaling": _scaling,
+    "adaptive": _adaptive, "compare": _compare, "sweep": _sweep, "stress": _stress,
+    "renders": _renders, "figure1": _figure1, "figure3": _figure3,
+}
+
+
+# ------------------------------------------------------------------------------------------
+# entry point
+# ------------------------------------------------------------------------------------------
+def build_report(out_dir) -> Path:
+    """Write OUT/index.html from OUT/data and return its path (atomic write)."""
+    out = Path(out_dir).resolve()
+    if not out.exists():
+        raise FileNotFoundError(f"report directory {out} does not exist (run a study first, e.g. cloudpbf demo)")
+    inp = Inputs(out)
+    try:
+        env = inp.environment()
+        env_error = None
+    except (json.JSONDecodeError, OSError) as exc:
+        env, env_error = None, f"{type(exc).__name__}: {exc}"
+    sections = []
+    for sid, title in SECTIONS:
+        sec = Section(sid, title)
+        try:
+            if sid == "environment" and env_error:
+                sec.add("note", f"could not read environment.json: {env_error}", level="error")
+            else:
+                BUILDERS[sid](inp, sec, env)
+        except Exception as exc:  # a broken input must not hide the other sections
+            sec.blocks.append(Block("note", f"could not build this section from {inp.data}: "
+                                            f"{type(exc).__name__}: {exc}", level="error"))
+        sections.append(sec)
+    template = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
+                                 undefined=jinja2.StrictUndefined).get_template("report.html.j2")
+    page = template.render(
+        sections=sections, env=env or {}, out_dir=str(out),
+        generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        scale=(env or {}).get("scale", "unknown"),
+        n_missing=sum(s.missing for s in sections),
+        Markup=jinja2.utils.markupsafe.Markup,
+    )
+    target = out / "index.html"
+    fd, tmp = tempfile.mkstemp(prefix=".index.html.", dir=out)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        fh.write(page)
+    os.replace(tmp, target)
+    return target
+
+
+def main(argv=None) -> int:
+    """``python -m bench.report.build OUT``: build OUT/index.html and print its path."""
+    import argparse
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", nargs="?", default="reports/latest", help="study output directory (holds data/)")
+    args = parser.parse_args(argv)
+    print(build_report(args.out))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

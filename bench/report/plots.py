@@ -1,0 +1,315 @@
+"""Matplotlib figures of the report, returned as ``data:image/png;base64`` URIs.
+
+Each function takes the study's DataFrames (columns as in the data layout of
+SPEC.md / the report's README section) and returns one embedded PNG.  Times are
+ms per step (Table 1, scaling) or s (wall time, simulated time); heights are m.
+"""
+from __future__ import annotations
+
+import base64
+import io
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
+PHASE_COLORS = {"pbf": "#4c72b0", "smoothing": "#55a868", "cloud_dynamics": "#c44e52",
+                "splitting": "#8172b2", "merging": "#ccb974"}
+SERIES_STYLE = {  # (solver, mode) -> colour
+    ("particles", "non-adaptive"): "#1f77b4",
+    ("particles", "adaptive"): "#ff7f0e",
+    ("grid", "grid"): "#2ca02c",
+}
+DPI = 110
+
+
+def to_data_uri(fig) -> str:
+    """Encode a figure as a PNG data URI and close it."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def png_file_uri(path) -> str:
+    """A PNG file (e.g. a pyvista render) as a data URI."""
+    with open(path, "rb") as fh:
+        return "data:image/png;base64," + base64.b64encode(fh.read()).decode("ascii")
+
+
+def _color(solver: str, mode: str, fallback_index: int = 0) -> str:
+    return SERIES_STYLE.get((solver, mode), f"C{fallback_index % 10}")
+
+
+# ------------------------------------------------------------------------------------------
+# Table 1 phases
+# ------------------------------------------------------------------------------------------
+def phase_bars(measured: pd.DataFrame, paper: pd.DataFrame | None = None) -> str:
+    """Stacked per-phase ms/step for each Table 1 row, measured (and the paper's) side by side."""
+    has_paper = paper is not None and len(paper)
+    fig, axes = plt.subplots(1, 2 if has_paper else 1, figsize=(11 if has_paper else 6.5, 4.2), squeeze=False)
+    frames = [("measured", measured)] + ([("paper (GeForce GTX 780 Ti)", paper)] if has_paper else [])
+    for ax, (title, df) in zip(axes[0], frames):
+        labels = [f"{r.example}\n{r.mode}" for r in df.itertuples()]
+        bottom = np.zeros(len(df))
+        for phase in PHASES:
+            col = f"{phase}_ms"
+            if col not in df.columns:
+                continue
+            vals = pd.to_numeric(df[col], errors="coerce").fillna(0.0).to_numpy()
+            if not vals.any():
+                continue
+            ax.bar(labels, vals, bottom=bottom, color=PHASE_COLORS[phase], label=phase)
+            bottom += vals
+        ax.set_ylabel("ms per step")
+        ax.set_title(title)
+        ax.tick_params(axis="x", labelsize=8)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# scaling
+# ------------------------------------------------------------------------------------------
+def _loglog_guides(ax, x, y):
+    """Dotted lines of slope 1 (linear cost) through the first point."""
+    if len(x) and np.all(np.asarray(x) > 0) and np.all(np.asarray(y) > 0):
+        xs = np.array([min(x), max(x)], dtype=float)
+        ax.plot(xs, y[0] * xs / x[0], ":", color="grey", lw=1, label="linear scaling")
+
+
+def pbf_scaling_plot(df: pd.DataFrame) -> str:
+    """ms per PBF step against particle count (log-log), per device and iteration count."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for i, ((device, iters), g) in enumerate(df.groupby(["device", "iterations"], sort=True)):
+        g = g.sort_values("particles")
+        x = g["particles"].to_numpy(dtype=float)
+        ax.plot(x, g["step_ms"], "o-", color=f"C{i}", label=f"step, {device}, {iters} it.")
+        for col, style in (("neighbors_ms", "--"), ("solver_ms", "-.")):
+            if col in g and g[col].notna().any():
+                ax.plot(x, g[col], style, color=f"C{i}", alpha=0.7, label=f"{col[:-3]}")
+        if i == 0:
+            _loglog_guides(ax, x, g["step_ms"].to_numpy(dtype=float))
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("particles")
+    ax.set_ylabel("ms per step")
+    ax.set_title("PBF step time")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+def grid_scaling_plot(df: pd.DataFrame) -> str:
+    """ms per grid step against cell count (log-log), per device and dtype."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for i, ((device, dtype), g) in enumerate(df.groupby(["device", "dtype"], sort=True)):
+        g = g.sort_values("cells")
+        x = g["cells"].to_numpy(dtype=float)
+        ax.plot(x, g["step_ms"], "s-", color=f"C{i}", label=f"{device}, {dtype}")
+        if i == 0:
+            _loglog_guides(ax, x, g["step_ms"].to_numpy(dtype=float))
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("grid cells")
+    ax.set_ylabel("ms per step")
+    ax.set_title("grid baseline step time")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# time series and profiles with seed spread
+# ------------------------------------------------------------------------------------------
+def seed_spread(df: pd.DataFrame, x: str, y: str, by: Sequence[str] = ("solver", "mode")) -> pd.DataFrame:
+    """Mean, min and max of `y` over seeds at each `x`, per group: columns *by, x, mean, lo, hi, n."""
+    by = [b for b in by if b in df.columns]
+    agg = (df.dropna(subset=[y]).groupby([*by, x], sort=True)[y]
+           .agg(mean="mean", lo="min", hi="max", n="count").reset_index())
+    return agg
+
+
+def _band(ax, stats: pd.DataFrame, x: str, label: str, color: str, horizontal: bool = False):
+    if horizontal:  # profiles: value on x, height on y
+        ax.plot(stats["mean"], stats[x], color=color, label=label)
+        ax.fill_betweenx(stats[x], stats["lo"], stats["hi"], color=color, alpha=0.25, lw=0)
+    else:
+        ax.plot(stats[x], stats["mean"], color=color, label=label)
+        ax.fill_between(stats[x], stats["lo"], stats["hi"], color=color, alpha=0.25, lw=0)
+
+
+def _groups(df: pd.DataFrame):
+    keys = [k for k in ("solver", "mode") if k in df.columns]
+    if not keys:
+        yield ("all", "all"), df
+        return
+    for key, g in df.groupby(keys, sort=True):
+        key = key if isinstance(key, tuple) else (key,)
+        yield (key + ("",))[:2], g
+
+
+TIMESERIES_PANELS = (
+    ("cloud_cover", "cloud cover (fraction of columns)"),
+    ("lwp_mean", "mean liquid water path (kg/m$^2$)"),
+    ("cloud_base", "cloud base (m)"),
+    ("cloud_top", "cloud top (m)"),
+)
+
+
+def timeseries_plot(df: pd.DataFrame, panels=TIMESERIES_PANELS, title: str | None = None) -> str:
+    """Diagnostics against time per solver/mode: mean over seeds, band = min..max over seeds."""
+    panels = [(c, l) for c, l in panels if c in df.columns]
+    ncol = 2
+    nrow = max(1, int(np.ceil(len(panels) / ncol)))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(11, 3.4 * nrow), squeeze=False)
+    for ax, (col, label) in zip(axes.ravel(), panels):
+        for i, ((solver, mode), g) in enumerate(_groups(df)):
+            stats = seed_spread(g, "time_s", col, by=())
+            n_seeds = g["seed"].nunique() if "seed" in g else 1
+            _band(ax, stats, "time_s", f"{solver} {mode} ({n_seeds} seeds)".strip(), _color(solver, mode, i))
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+def common_last_time(df: pd.DataFrame) -> float:
+    """The latest time (s) that every solver/mode group reached."""
+    return float(min(g["time_s"].max() for _, g in _groups(df)))
+
+
+PROFILE_PANELS = (
+    ("cloud_fraction", "cloud fraction a$_c$"),
+    ("temperature", "temperature T (K)"),
+    ("vapor", "vapor v (kg/kg)"),
+    ("cloud", "cloud w (kg/kg)"),
+)
+
+
+def profiles_plot(df: pd.DataFrame, time_s: float | None = None) -> str:
+    """Vertical profiles at one time (default: the last time every group reached)."""
+    if time_s is None:
+        time_s = common_last_time(df)
+    at = df[np.isclose(df["time_s"], time_s)]
+    panels = [(c, l) for c, l in PROFILE_PANELS if c in at.columns]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.0 * len(panels) + 1, 4.2), squeeze=False, sharey=True)
+    for ax, (col, label) in zip(axes[0], panels):
+        for i, ((solver, mode), g) in enumerate(_groups(at)):
+            stats = seed_spread(g, "z", col, by=())
+            _band(ax, stats, "z", f"{solver} {mode}".strip(), _color(solver, mode, i), horizontal=True)
+        ax.set_xlabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0][0].set_ylabel("height z (m)")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"horizontal-mean profiles at t = {time_s:g} s (band: min..max over seeds)")
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# sweep: run time against error
+# ------------------------------------------------------------------------------------------
+def pareto_front(df: pd.DataFrame, cost: str = "wall_s", error: str = "error_self") -> pd.DataFrame:
+    """Rows not dominated by any other (lower cost and lower error), sorted by cost."""
+    d = df.dropna(subset=[cost, error]).sort_values([cost, error], kind="stable")
+    keep, best = [], np.inf
+    for idx, err in zip(d.index, d[error]):
+        if err < best:
+            keep.append(idx)
+            best = err
+    return d.loc[keep]
+
+
+def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_other")) -> str:
+    """Wall time against error per method (and mode), with the Pareto front of each as a line.
+
+    A run with zero error is the reference the errors are measured against: drawn as a
+    star, left out of the fronts.
+    """
+    errors = [e for e in errors if e in df.columns and df[e].notna().any()]
+    fig, axes = plt.subplots(1, len(errors), figsize=(5.8 * len(errors), 4.4), squeeze=False)
+    titles = {"error_self": "error against the method's own finest run",
+              "error_other": "error against the other method's finest run"}
+    markers = "osD^v<>ph"
+    keys = [k for k in ("method", "mode") if k in df.columns]
+    for ax, err in zip(axes[0], errors):
+        for i, (key, g) in enumerate(df.groupby(keys, sort=True)):
+            key = key if isinstance(key, tuple) else (key,)
+            method, mode = (key + ("",))[:2]
+            name = method if mode in ("", method) else f"{method} {mode}"
+            color = _color(method, mode, i)
+            ref = g[err] <= 0
+            for j, (param, gp) in enumerate(g[~ref].groupby("parameter", sort=True)):
+                ax.scatter(gp["wall_s"], gp[err], color=color, marker=markers[j % len(markers)], alpha=0.75,
+                           label=f"{name}: {param}")
+            if ref.any():
+                for x in g[ref]["wall_s"]:
+                    ax.axvline(x, color=color, ls=":", lw=1)
+            front = pareto_front(g[~ref], "wall_s", err)
+            if len(front):
+                ax.step(front["wall_s"], front[err], where="post", color=color, lw=2, alpha=0.9,
+                        label=f"{name} Pareto front")
+        values = df[err].dropna()
+        if len(values[values > 0]) and (values[values > 0].max() / values[values > 0].min() > 20):
+            ax.set_yscale("log")
+        walls = df["wall_s"].dropna()
+        if len(walls) and (walls > 0).all():
+            ax.set_xscale("log")
+            ax.set_xlim(walls.min() / 1.3, walls.max() * 1.3)   # reference runs (vertical lines) included
+        ax.set_xlabel("wall time (s); dotted: reference runs (zero error)")
+        ax.set_ylabel(err)
+        ax.set_title(titles.get(err, err), fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# stress: stability map
+# ------------------------------------------------------------------------------------------
+def stability_map(df: pd.DataFrame) -> str:
+    """One row per swept parameter: values on a log axis, green stable, red unstable."""
+    params = list(dict.fromkeys(df["parameter"]))
+    fig, axes = plt.subplots(len(params), 1, figsize=(8, 1.3 * len(params) + 0.8), squeeze=False)
+    for ax, param in zip(axes[:, 0], params):
+        g = df[df["parameter"] == param].sort_values("value")
+        values = pd.to_numeric(g["value"], errors="coerce")
+        stable = g["stable"].map(_truthy)
+        ax.scatter(values[stable], np.zeros(stable.sum()), s=90, color="#2ca02c", marker="o", label="stable")
+        ax.scatter(values[~stable], np.zeros((~stable).sum()), s=90, color="#d62728", marker="X", label="unstable")
+        for v, ok, reason in zip(values, stable, g.get("reason", pd.Series([""] * len(g)))):
+            if not ok and isinstance(reason, str) and reason:
+                ax.annotate(reason[:28], (v, 0), xytext=(0, 9), textcoords="offset points", fontsize=6,
+                            ha="center", rotation=20, color="#d62728")
+        if (values > 0).all() and values.max() / values.min() > 20:
+            ax.set_xscale("log")
+        ax.set_yticks([])
+        ax.set_ylabel(param, rotation=0, ha="right", va="center")
+        ax.set_ylim(-1, 1.6)
+        ax.grid(True, axis="x", which="both", alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="upper left", ncol=2)
+    axes[-1, 0].set_xlabel("parameter value")
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
+def _truthy(value) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("true", "1", "yes", "stable")
+    return bool(value) and not (isinstance(value, float) and np.isnan(value))

@@ -1,0 +1,302 @@
+"""The HTML report (built from a synthetic study directory) and the pyvista renders."""
+import json
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench import render
+from bench import statistics as st
+from bench.report import SECTIONS, build_report
+from bench.report import plots
+
+DEVICE, COMMIT = "Synthetic CPU (2 threads)", "abc123def456"
+
+
+# --------------------------------------------------------------------------------------------
+# a synthetic study: every input of the data layout, numbers from the statistics code
+# --------------------------------------------------------------------------------------------
+def _box_cloud_fields(t, seed, speed):
+    """A growing box of cloud on a 16 x 20 x 16 grid of 100 m cells (cloud from t = 100 s)."""
+    shape = (16, 20, 16)
+    rng = np.random.default_rng(seed)
+    w = np.zeros(shape)
+    if t >= 100:
+        half = min(8, int(1 + speed * (t - 100) / 100))
+        x0 = int(rng.integers(0, 16))
+        w[np.arange(x0, x0 + half) % 16, 8:8 + half // 2 + 1, :half] = 3e-4
+    y = (np.arange(shape[1]) + 0.5) * 100.0
+    return {"cloud": w, "vapor": np.full(shape, 1e-2) - w,
+            "temperature": np.broadcast_to((300 - 0.0065 * y)[None, :, None], shape),
+            "cell_size": np.full(3, 100.0), "origin": np.zeros(3)}
+
+
+def write_synthetic_study(out, renders=True):
+    data = out / "data"
+    (data / "renders").mkdir(parents=True)
+    (data / "environment.json").write_text(json.dumps({
+        "device": DEVICE, "backend": "cpu", "commit": COMMIT, "date": "2026-01-01T00:00:00Z",
+        "python": "3.11.0", "versions": {"numpy": np.__version__, "pandas": pd.__version__}, "scale": "cpu-smoke"}))
+    pd.DataFrame([
+        ("growing", "5a", "non-adaptive", 4096, 30.0, 4.0, 1.0, None, None),
+        ("growing", "5b", "adaptive", 2600, 15.0, 2.0, 0.5, 0.4, 1.2),
+        ("cycling", "5c", "non-adaptive", 4500, 33.0, 4.2, 1.1, None, None),
+        ("cycling", "5d", "adaptive", 2500, 16.0, 2.1, 0.6, 0.5, 1.3),
+    ], columns=["example", "figure", "mode", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms",
+                "splitting_ms", "merging_ms"]).assign(
+        total_ms=lambda d: d[["pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms", "merging_ms"]]
+        .sum(axis=1), device=DEVICE, commit=COMMIT).to_csv(data / "table1.csv", index=False)
+    pd.DataFrame({"particles": [250_000, 1_000_000, 4_000_000], "iterations": 4,
+                  "step_ms": [3.0, 11.0, 45.0], "neighbors_ms": [1.0, 4.0, 17.0], "solver_ms": [1.5, 5.5, 23.0],
+                  "device": DEVICE, "commit": COMMIT}).to_csv(data / "pbf_scaling.csv", index=False)
+    pd.DataFrame({"cells": [32**3, 64**3, 128**3], "step_ms": [5.0, 38.0, 310.0], "dtype": "float64",
+                  "device": DEVICE, "commit": COMMIT}).to_csv(data / "grid_scaling.csv", index=False)
+    series, profiles = [], []
+    for solver, mode, speed in (("particles", "non-adaptive", 1.0), ("particles", "adaptive", 1.2),
+                                ("grid", "grid", 0.8)):
+        for seed in range(5):
+            rows = []
+            for t in range(0, 1001, 100):
+                fields = _box_cloud_fields(t, seed, speed)
+                rows.append({"time_s": float(t), **st.diagnostics(fields),
+                             **({"n_particles": 4096 + (0 if mode != "adaptive" else 10 * t)}
+                                if solver == "particles" else {})})
+                prof = st.vertical_profiles(fields)
+                profiles.append(prof.assign(solver=solver, mode=mode, seed=seed, time_s=float(t)))
+            series.append(st.timeseries_frame(rows, solver=solver, mode=mode, seed=seed))
+    pd.concat(series).assign(device=DEVICE, commit=COMMIT).to_csv(data / "compare_timeseries.csv", index=False)
+    pd.concat(profiles)[["solver", "mode", "seed", "time_s", *st.PROFILE_COLUMNS]].assign(
+        device=DEVICE, commit=COMMIT).to_csv(data / "compare_profiles.csv", index=False)
+    sweep = []
+    for mode, base in (("non-adaptive", 1.0), ("adaptive", 0.6)):
+        for spacing, err in ((100.0, 0.30), (70.0, 0.15), (50.0, 0.05), (35.0, 0.0)):
+            sweep.append(("particles", mode, "spacing", spacing, base * (100 / spacing) ** 3, err, err + 0.1))
+    for cells, err in ((16, 0.4), (32, 0.2), (64, 0.0)):
+        sweep.append(("grid", "grid", "cells", cells, 0.01 * cells**1.5, err, err + 0.15))
+    pd.DataFrame(sweep, columns=["method", "mode", "parameter", "value", "wall_s", "error_self", "error_other"]).assign(
+        device=DEVICE, commit=COMMIT).to_csv(data / "sweep.csv", index=False)
+    pd.DataFrame([
+        ("dt", 0.5, True, "", 400, 4096, 3.0, 0.01), ("dt", 2.0, True, "", 400, 4096, 3.5, 0.01),
+        ("dt", 8.0, True, "", 400, 4096, 6.0, 0.03), ("dt", 32.0, False, "velocity bound exceeded", 17, 4096, 250.0, 0.4),
+        ("iterations", 1, True, "", 400, 4096, 4.0, 0.05), ("iterations", 4, True, "", 400, 4096, 3.0, 0.01),
+        ("phase_rate_dt", 100.0, True, "", 400, 4096, 3.2, 0.01),
+        ("heating_rate", 5.0, False, "NaN in temperature", 3, 4096, 9.0, 0.02),
+    ], columns=["parameter", "value", "stable", "reason", "step", "particles", "max_speed", "density_error_mean"]
+    ).assign(device=DEVICE, commit=COMMIT).to_csv(data / "stress.csv", index=False)
+    if renders:
+        import matplotlib.pyplot as plt
+        for name in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",
+                     "figure3_shape_energy"):
+            fig, ax = plt.subplots(figsize=(2, 1.5))
+            ax.imshow(np.random.default_rng(0).random((8, 8)))
+            fig.savefig(data / "renders" / f"{name}.png")
+            plt.close(fig)
+    return out
+
+
+class _Collector(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.ids, self.refs, self.images = set(), [], 0
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if "id" in attrs:
+            self.ids.add(attrs["id"])
+        for key in ("src", "href"):
+            if attrs.get(key):
+                self.refs.append(attrs[key])
+        if tag == "img":
+            self.images += 1
+
+
+def _sections(page):
+    """section id -> its HTML."""
+    parts = re.split(r'<section id="', page)[1:]
+    return {p.split('"', 1)[0]: p for p in parts}
+
+
+# --------------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def full_report(tmp_path_factory):
+    """(study directory, index.html text) of the synthetic study with every input."""
+    out = write_synthetic_study(tmp_path_factory.mktemp("report") / "study")
+    index = build_report(out)
+    assert index == (out / "index.html").resolve()
+    return out, index.read_text()
+
+
+def test_report_builds_with_every_section_and_no_external_reference(full_report):
+    out, page = full_report
+    parser = _Collector()
+    parser.feed(page)
+    expected = [sid for sid, _ in SECTIONS]
+    assert set(expected) <= parser.ids
+    assert expected == ["environment", "table1", "phases", "scaling", "adaptive", "compare", "sweep", "stress",
+                        "renders", "figure1", "figure3"]
+    # self-contained: only in-page anchors and embedded images
+    assert not re.search(r"https?://", page)
+    assert all(r.startswith("#") or r.startswith("data:image/png;base64,") for r in parser.refs), parser.refs
+    assert parser.images == 13   # every figure and render of the synthetic study
+    sections = _sections(page)
+    for sid in expected:
+        assert "not run in this study" not in sections[sid], sid
+        assert "could not build" not in sections[sid], sid
+    # the numbers in the page come from the data
+    assert DEVICE in sections["environment"] and COMMIT in sections["table1"]
+    assert "1087" in sections["table1"]                       # paper's pbf ms beside ours
+    assert "1.657" in sections["table1"]                      # paper speedup growing: 1218.95 / 735.64
+    assert "scaled down" in sections["table1"]                # cpu-smoke labelled
+    assert "Largest stable dt: 8 s" in sections["stress"]
+    assert "velocity bound exceeded" in sections["stress"]
+    # sweep verdict at equal error 0.05: adaptive 0.6 * (100/50)^3 = 4.8 s, non-adaptive 8 s
+    assert "adaptive needs 4.8 s and non-adaptive 8 s: adaptive is 1.67x faster" in sections["sweep"]
+
+
+def test_table1_speedups_are_computed_from_the_rows(full_report):
+    table1 = _sections(full_report[1])["table1"]
+    # growing: non-adaptive 35 ms, adaptive 19.1 ms -> 1.832x
+    assert f"{35.0 / 19.1:.4g}" in table1
+    # paper / measured for the growing non-adaptive row: (1087.36 + 112.35 + 19.24) / 35
+    assert f"{(1087.36 + 112.35 + 19.24) / 35.0:.4g}" in table1
+
+
+def test_report_with_missing_inputs_says_not_run_with_the_command(tmp_path):
+    out = tmp_path / "empty"
+    (out / "data").mkdir(parents=True)
+    page = build_report(out).read_text()
+    sections = _sections(page)
+    assert set(sections) == {sid for sid, _ in SECTIONS}
+    for sid in sections:
+        assert "not run in this study" in sections[sid], sid
+        assert "<code>" in sections[sid], sid
+    assert "cloudpbf sweep" in sections["sweep"] and "cloudpbf stress" in sections["stress"]
+    assert "cloudpbf table1" in sections["table1"]
+    assert not re.search(r"https?://", page)
+
+
+def test_report_partial_inputs_and_unavailable_render(tmp_path, full_report):
+    import shutil
+    out = tmp_path / "study"
+    shutil.copytree(full_report[0] / "data", out / "data")
+    (out / "data" / "grid_scaling.csv").unlink()
+    (out / "data" / "sweep.csv").unlink()
+    (out / "data" / "renders" / "clouds_volume.png").unlink()
+    render.note_path(out / "data" / "renders" / "clouds_volume.png").write_text("no OpenGL context here")
+    sections = _sections(build_report(out).read_text())
+    assert "grid_scaling.csv" in sections["scaling"] and "not run in this study" in sections["scaling"]
+    assert "data:image/png" in sections["scaling"]            # the PBF half is still there
+    assert "not run in this study" in sections["sweep"]
+    assert "render unavailable: no OpenGL context here" in sections["renders"]
+    assert "not run in this study" not in sections["compare"]
+
+
+def test_broken_input_shows_an_error_in_its_section_only(tmp_path, full_report):
+    out = tmp_path / "study"
+    (out / "data").mkdir(parents=True)
+    for name in ("environment.json", "sweep.csv"):
+        (out / "data" / name).write_bytes((full_report[0] / "data" / name).read_bytes())
+    (out / "data" / "stress.csv").write_text("parameter,value\ndt,1.0\n")   # no 'stable' column
+    sections = _sections(build_report(out).read_text())
+    assert "could not build this section" in sections["stress"] and "stable" in sections["stress"]
+    assert "could not build" not in sections["sweep"]
+
+
+def test_gpu_reference_layout_is_read_from_the_directory_itself(tmp_path):
+    out = tmp_path / "gpu"
+    out.mkdir()
+    pd.DataFrame({"cells": [32**3, 64**3], "step_ms": [1.0, 6.0], "dtype": "float32", "device": "NVIDIA H100",
+                  "commit": COMMIT}).to_csv(out / "grid_scaling.csv", index=False)
+    sections = _sections(build_report(out).read_text())
+    assert "NVIDIA H100" in sections["scaling"] and "data:image/png" in sections["scaling"]
+
+
+def test_pareto_front_and_seed_spread():
+    df = pd.DataFrame({"wall_s": [1.0, 2.0, 3.0, 4.0, 2.5], "error_self": [0.5, 0.3, 0.35, 0.1, 0.3]})
+    front = plots.pareto_front(df)
+    assert front["wall_s"].tolist() == [1.0, 2.0, 4.0]
+    ts = pd.DataFrame({"solver": "grid", "mode": "grid", "seed": [0, 1, 2, 0, 1, 2],
+                       "time_s": [0, 0, 0, 10, 10, 10], "cloud_cover": [0.0, 0.0, 0.0, 0.1, 0.3, 0.2]})
+    spread = plots.seed_spread(ts, "time_s", "cloud_cover")
+    last = spread[spread["time_s"] == 10].iloc[0]
+    assert (last["lo"], last["hi"], last["n"]) == (0.1, 0.3, 3) and last["mean"] == pytest.approx(0.2)
+
+
+# --------------------------------------------------------------------------------------------
+# renders
+# --------------------------------------------------------------------------------------------
+def _rendering():
+    ok, why = render.rendering_status()
+    if not ok:
+        pytest.skip(f"no off-screen OpenGL here: {why}")
+
+
+def _slab_state(scene, patchy):
+    lo, hi = scene.fill_box()
+    d = scene.particles.spacing
+    axes = [np.arange(lo[a] + d / 2, hi[a], d) for a in range(3)]
+    pos = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    r2 = ((pos[:, 0] - 1600) / 600) ** 2 + ((pos[:, 1] - 1800) / 300) ** 2
+    w = 8e-4 * np.exp(-r2)
+    if patchy:
+        w *= np.random.default_rng(0).random(len(w)) > 0.5
+    n = len(pos)
+    return {"position": pos, "cloud": w, "temperature": scene.environment_temperature(pos[:, 1]),
+            "vapor": np.full(n, 1e-2), "mass": np.full(n, d**3), "kernel_radius": np.full(n, 2 * d),
+            "level": np.where(w > 1e-4, 2, 0)}
+
+
+def _is_picture(path, min_colours=20):
+    from PIL import Image
+    img = np.asarray(Image.open(path).convert("RGB"), dtype=float)
+    return img.std() > 5.0 and len(np.unique(img.reshape(-1, 3), axis=0)) >= min_colours
+
+
+def test_renders_produce_non_blank_pictures(tmp_path):
+    _rendering()
+    from pbf_cuda.scene import load_scene
+    slab = load_scene("smoothing_slab", **{"particles.spacing": 100.0, "domain.size": [3200.0, 3200.0, 600.0]})
+    smooth, patchy = _slab_state(slab, False), _slab_state(slab, True)
+    small = (320, 240)
+    paths = [
+        render.render_particles(smooth, slab, tmp_path / "p.png", window_size=small),
+        render.render_particles(smooth, slab, tmp_path / "e.png", color_by="shape_energy", window_size=small),
+        render.render_slab_comparison(patchy, smooth, slab, tmp_path / "f1.png", window_size=(480, 240)),
+        render.render_shape_energy(smooth, slab, tmp_path / "f3.png", window_size=(480, 240)),
+    ]
+    grid = st.deposit_state(smooth, slab)
+    paths.append(render.render_volume(grid["cloud"], grid["cell_size"], tmp_path / "v.png", window_size=small))
+    for path in paths:
+        assert path.is_file() and _is_picture(path), path.name
+    # the cloud picture differs where there is cloud: an all-clear state draws no splats
+    clear = dict(smooth, cloud=np.zeros_like(smooth["cloud"]))
+    empty = render.render_particles(clear, slab, tmp_path / "clear.png", window_size=small)
+    from PIL import Image
+    a = np.asarray(Image.open(paths[0]).convert("L"), dtype=float)
+    b = np.asarray(Image.open(empty).convert("L"), dtype=float)
+    assert np.abs(a - b).mean() > 0.5
+
+
+def test_render_failure_becomes_a_note(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLOUDPBF_NO_RENDER", "1")
+    render.rendering_status.cache_clear()
+    try:
+        with pytest.raises(render.RenderUnavailable, match="CLOUDPBF_NO_RENDER"):
+            render.render_volume(np.zeros((2, 2, 2)), 1.0, tmp_path / "v.png")
+        assert render.render_or_note(render.render_volume, tmp_path / "v.png", np.zeros((2, 2, 2)), 1.0) is None
+        assert not (tmp_path / "v.png").exists()
+        assert "CLOUDPBF_NO_RENDER" in render.note_path(tmp_path / "v.png").read_text()
+    finally:
+        monkeypatch.delenv("CLOUDPBF_NO_RENDER")
+        render.rendering_status.cache_clear()
+
+
+def test_shape_energy_is_eq_20():
+    w = np.array([0.0, 1e-4, 1e-3])
+    assert np.allclose(render.shape_energy(w, 2.0, 2000.0), 2.0 * (1.0 - np.exp(-2000.0 * w)))
+    with pytest.raises(ValueError, match="color_by"):
+        render.render_particles({"position": np.zeros((1, 3))}, None, "x.png", color_by="pressure")
