@@ -58,7 +58,8 @@ BackendOpt = Annotated[Backend, typer.Option("--backend", help="particle solver 
 WorkersOpt = Annotated[Optional[int], typer.Option(
     "--workers", min=1, max=4096, help="dask workers of the local cluster (default: CPU cores; 1 per GPU on GPU)")]
 SchedulerOpt = Annotated[Optional[str], typer.Option(
-    "--scheduler", help="address of an existing dask scheduler (e.g. tcp://host:8786) instead of a local cluster")]
+    "--scheduler", help="address of an existing dask scheduler (e.g. tcp://host:8786) instead of a local "
+                        "cluster; 'inline': no dask, the runs one by one in this process")]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars or progress messages")]
 
 

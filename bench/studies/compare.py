@@ -21,7 +21,7 @@ from bench import runs
 from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.scales import scale_scene
-from pbf_cuda.scene import Scene, list_scenes, load_scene
+from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 
 MODES = ("non-adaptive", "adaptive", "grid")
 SOLVER_OF_MODE = {"non-adaptive": "particles", "adaptive": "particles", "grid": "grid"}
@@ -46,8 +46,12 @@ def scene_pair(name: str) -> tuple[Scene, Scene]:
     if f"{base_name}_adaptive" in list_scenes():
         adaptive = load_scene(f"{base_name}_adaptive")
     else:
-        adaptive = base.replace(**{"adaptive.enabled": True, "adaptive.max_level": 3,
-                                   "particles.spacing": 2.0 * base.particles.spacing})
+        try:
+            adaptive = base.replace(**{"adaptive.enabled": True, "adaptive.max_level": 3,
+                                       "particles.spacing": 2.0 * base.particles.spacing})
+        except SceneError as exc:
+            raise ValueError(f"cannot make an adaptive twin of '{name}' by doubling its spacing ({exc}); "
+                             f"write a scene file {base_name}_adaptive.toml") from None
     return base, adaptive
 
 

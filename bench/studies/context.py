@@ -7,6 +7,7 @@ worker per visible GPU, pinned with CUDA_VISIBLE_DEVICES), or an existing schedu
 (``--scheduler tcp://host:8786``) to spread a study over many machines.  Each task is one RunSpec;
 workers write into the run cache, which must then be a path every worker sees (a shared
 filesystem), and send back a small summary dict.  Runs already in the cache are not sent at all.
+``--scheduler inline`` runs the missing specs one by one in this process, without dask (debugging).
 """
 from __future__ import annotations
 
@@ -20,7 +21,9 @@ from bench import runs
 from bench.studies import environment
 from bench.studies.scales import Scale
 
-__all__ = ["StudyContext", "StudyError"]
+__all__ = ["StudyContext", "StudyError", "INLINE"]
+
+INLINE = "inline"
 
 
 class StudyError(RuntimeError):
@@ -114,26 +117,40 @@ class StudyContext:
         failures = []
         if missing:
             self.say(f"{label}: {len(done)} runs cached, {len(missing)} to run on {self.cluster_description()}")
-            from distributed import as_completed
-            client = self.client()
-            futures = {client.submit(runs.execute_summary, unique[k], str(self.runs_root), pure=False,
-                                     key=f"{label}-{unique[k].solver}-{k[:16]}"): k for k in missing}
-            bar = tqdm(total=len(futures), desc=label, unit="run", disable=True if self.quiet else None)
-            for future in as_completed(futures):
-                key = futures[future]
-                try:
-                    summary = future.result()
-                    done[key] = runs.RunResult.load(summary["path"])
-                except Exception as exc:  # a crashed run: report it, keep the others
+            bar = tqdm(total=len(missing), desc=label, unit="run", disable=True if self.quiet else None)
+            for key, outcome in self._execute({k: unique[k] for k in missing}, label):
+                if isinstance(outcome, BaseException):  # a crashed run: report it, keep the others
                     spec = unique[key]
                     failures.append(f"{spec.solver} {spec.scene.name} seed {spec.seed} "
-                                    f"({spec.directory(self.runs_root, key)}): {type(exc).__name__}: {exc}")
+                                    f"({spec.directory(self.runs_root, key)}): {type(outcome).__name__}: {outcome}")
+                else:
+                    done[key] = runs.RunResult.load(outcome["path"])
                 bar.update(1)
             bar.close()
         if failures:
             raise StudyError(f"{label}: {len(failures)} of {len(unique)} runs failed (finished runs are cached; "
                              "rerun to retry):\n  " + "\n  ".join(failures))
         return [done[k] for k in keys]
+
+    def _execute(self, specs: dict, label: str):
+        """Yield (key, summary dict or the exception) for every spec, as each finishes."""
+        root = str(self.runs_root)
+        if self.scheduler == INLINE:
+            for key, spec in specs.items():
+                try:
+                    yield key, runs.execute_summary(spec, root)
+                except Exception as exc:
+                    yield key, exc
+            return
+        from distributed import as_completed
+        client = self.client()
+        futures = {client.submit(runs.execute_summary, spec, root, pure=False, key=f"{label}-{spec.solver}-{key[:16]}"): key
+                   for key, spec in specs.items()}
+        for future in as_completed(futures):
+            try:
+                yield futures[future], future.result()
+            except Exception as exc:
+                yield futures[future], exc
 
     def n_workers(self) -> int:
         if self.workers:
@@ -151,6 +168,8 @@ class StudyContext:
         return [str(i) for i in range(max(1, environment.gpu_count()))]
 
     def cluster_description(self) -> str:
+        if self.scheduler == INLINE:
+            return "this process (inline, no dask)"
         if self.scheduler:
             return f"the dask scheduler at {self.scheduler}"
         gpus = self._gpus()

@@ -48,9 +48,9 @@ STRESS_ITERATIONS = (1, 2, 4, 8)
 STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)
 
 SCALES = {
-    "smoke": Scale("smoke", "cpu-smoke", particles=3000, step_fraction=0.3, seeds=5, slab_particles=2000,
-                   sweep_particles=(2000, 4000, 8000), sweep_iterations=(1, 2, 8),
-                   sweep_split_thresholds=(0.15, 0.6), sweep_grid_cells=(8, 12, 18),
+    "smoke": Scale("smoke", "cpu-smoke", particles=3000, step_fraction=0.5, seeds=5, slab_particles=2000,
+                   sweep_particles=(2000, 3000, 5000), sweep_iterations=(2, 8),
+                   sweep_split_thresholds=(0.15, 0.6), sweep_grid_cells=(8, 12, 16),
                    stress_particles=2000, stress_steps=30, stress_dt=STRESS_DT, stress_iterations=STRESS_ITERATIONS,
                    stress_alpha_dt=STRESS_ALPHA_DT,
                    scaling_particles=(2000, 8000), scaling_grid_cells=(12, 20), timing_steps=5),

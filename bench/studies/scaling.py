@@ -62,7 +62,7 @@ def grid_scaling(sizes, scene_name: str = SCENE, dtypes=None, timing_steps: int 
     import jax
     from bench.grid_scaling import measure
     platform = jax.default_backend()
-    dtypes = dtypes or (("float32", "float64") if platform == "cpu" else ("float32",))
+    dtypes = dtypes or (("float64",) if platform == "cpu" else ("float32",))   # each solver's default precision
     scene = load_scene(scene_name)
     rows = []
     for n in sizes:

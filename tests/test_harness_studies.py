@@ -1,0 +1,150 @@
+"""Studies: scaling of scenes, error metrics, Pareto front, verdict, largest stable dt, and a study that
+reruns only what is missing after an interruption (toy solver, inline execution)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench import runs
+from bench.studies import stress, sweep
+from bench.studies.compare import scene_pair
+from bench.studies.context import INLINE, StudyContext, StudyError
+from bench.studies.scales import SCALES, fine_particles, scale_scene, scale_slab
+from pbf_cuda.scene import load_scene
+from test_harness_toy import toy_solver  # noqa: F401  (fixture)
+
+
+# ---- scales ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["growing", "growing_adaptive", "cycling_adaptive"])
+def test_scale_scene_hits_the_count_and_keeps_the_heat_flux(name):
+    scene = load_scene(name)
+    small = scale_scene(scene, 20_000, step_fraction=0.5)
+    assert 0.7 < fine_particles(small) / 20_000 < 1.3
+    a, b = scene.atmosphere, small.atmosphere
+    assert b.heating_rate * b.heating_depth == pytest.approx(a.heating_rate * a.heating_depth)   # eq. 5 flux
+    assert b.heating_depth > small.particles.spacing / 2          # the heated layer still holds particles
+    assert small.time.steps == scene.time.steps // 2 and small.time.dt == scene.time.dt
+
+
+def test_fine_particles_counts_adaptive_levels():
+    scene = load_scene("growing_adaptive")
+    assert fine_particles(scene) == scene.estimated_particles() * 2 ** scene.adaptive.max_level
+    # the paper's pairing: a fully refined adaptive run matches the non-adaptive count within 1%
+    assert fine_particles(scene) == pytest.approx(load_scene("growing").estimated_particles(), rel=0.01)
+
+
+def test_scale_slab_keeps_its_layers():
+    slab = load_scene("smoothing_slab")
+    small = scale_slab(slab, 2000)
+    assert small.lattice_shape()[2] == slab.lattice_shape()[2] == 6
+    assert 0.8 < small.estimated_particles() / 2000 < 1.25
+
+
+def test_every_scale_gives_valid_scenes():
+    for scale in SCALES.values():
+        for name in ("growing", "growing_adaptive", "cycling", "cycling_adaptive"):
+            scale_scene(load_scene(name), scale.particles, scale.step_fraction)
+        for n in scale.sweep_particles:
+            scale_scene(load_scene("growing_adaptive"), n)
+        scale_slab(load_scene("smoothing_slab"), scale.slab_particles)
+
+
+def test_scene_pair(tmp_path):
+    base, adaptive = scene_pair("cycling")
+    assert (base.name, adaptive.name) == ("cycling", "cycling_adaptive")
+    path = tmp_path / "wide.toml"
+    path.write_text('[scene]\nname = "wide"\nextends = "growing"\n')
+    base, adaptive = scene_pair(str(path))                   # no wide_adaptive: switched on here
+    assert not base.adaptive.enabled and adaptive.adaptive.enabled
+    assert adaptive.particles.spacing == 2 * base.particles.spacing
+    with pytest.raises(ValueError, match="cannot make an adaptive twin of 'parcel'.*periodic z axis"):
+        scene_pair("parcel")                                  # 300 m thin: doubled spacing does not fit
+    with pytest.raises(ValueError, match="compare needs a cloud scene"):
+        scene_pair("rest_box")
+
+
+# ---- sweep metrics ---------------------------------------------------------------------------------
+def signature(cover, profile, time=None, z=None):
+    time = np.arange(len(cover), dtype=float) if time is None else time
+    z = np.arange(len(profile), dtype=float) if z is None else z
+    return {"time": time, "cover": np.asarray(cover, float), "z": z, "profile": np.asarray(profile, float)}
+
+
+def test_errors_are_relative_l2():
+    ref = signature([0.0, 0.2, 0.4], [0.0, 0.5, 0.1])
+    assert sweep.errors(ref, ref) == (0.0, 0.0, 0.0)
+    doubled = signature([0.0, 0.4, 0.8], [0.0, 0.5, 0.1])
+    err, e_cover, e_profile = sweep.errors(doubled, ref)
+    assert (e_cover, e_profile, err) == pytest.approx((1.0, 0.0, 0.5))
+    # a run sampled on other heights is interpolated onto the reference's
+    fine = signature([0.0, 0.2, 0.4], [0.0, 0.25, 0.5, 0.3, 0.1], z=np.linspace(0, 2, 5))
+    assert sweep.errors(fine, ref)[2] == pytest.approx(0.0)
+    assert math.isnan(sweep.errors(ref, signature([0, 0, 0], [0, 0, 0]))[0])   # reference without cloud
+
+
+def test_pareto_mask():
+    wall = np.array([1.0, 2.0, 3.0, 2.5, np.nan])
+    error = np.array([0.5, 0.2, 0.1, 0.3, 0.0])
+    assert sweep.pareto_mask(wall, error).tolist() == [True, True, True, False, False]
+
+
+def test_verdict_interpolates_wall_time_at_equal_error():
+    rows = [dict(parameter="spacing", value=3.0, particles=1000, wall_s=2.0, error_self=0.3, stable=True),
+            dict(parameter="spacing", value=2.0, particles=3000, wall_s=10.0, error_self=0.1, stable=True),
+            dict(parameter="adaptive_spacing", value=4.0, particles=900, wall_s=3.0, error_self=0.2, stable=True)]
+    out = sweep.verdict(pd.DataFrame(rows))
+    (cmp,) = out["comparisons"]
+    assert cmp["wall_non_adaptive_s"] == pytest.approx(6.0) and cmp["speedup"] == pytest.approx(2.0)
+    assert out["verdict"].startswith("at equal error, adaptive runs are 2.00x faster")
+
+
+def test_largest_stable_dt_stops_at_the_first_failure():
+    frame = pd.DataFrame({"parameter": ["dt"] * 5 + ["iterations"],
+                          "value": [1.0, 2.0, 4.0, 8.0, 16.0, 1.0],
+                          "stable": [True, True, False, True, False, False]})
+    out = stress.largest_stable_dt(frame)
+    assert out["largest_stable_dt"] == 2.0 and out["smallest_unstable_dt"] == 4.0
+
+
+# ---- a study interrupted, then resumed ---------------------------------------------------------------
+TINY = dataclasses.replace(SCALES["smoke"], stress_particles=3000, stress_steps=6,
+                           stress_dt=(1.0, 2.0, 150.0), stress_iterations=(1, 2), stress_alpha_dt=(1.0,))
+
+
+def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, monkeypatch):
+    real_execute = runs.execute
+    calls = []
+
+    def execute(spec, root=None, **kw):
+        calls.append(spec.key())
+        if len(calls) == 4:
+            raise RuntimeError("worker lost")          # the 4th run dies, the study goes on
+        return real_execute(spec, root, **kw)
+
+    monkeypatch.setattr(runs, "execute", execute)
+    ctx = StudyContext(out=tmp_path / "out", scale=TINY, runs_root=tmp_path / "runs", scheduler=INLINE, quiet=True)
+    # 10 cases, 8 distinct runs: dt = 2 s, heating x1 and alpha*dt = 1 are all the base scene
+    with pytest.raises(StudyError, match="1 of 8 runs failed"):
+        stress.run_stress(ctx)
+    assert len(calls) == 8 and not (ctx.data / "stress.csv").exists()
+    first_steps = toy_solver.steps_taken
+    calls.clear()
+    frame = stress.run_stress(ctx)                     # the rerun: only the lost run
+    assert len(calls) == 1
+    assert toy_solver.steps_taken - first_steps <= 6
+    assert len(frame) == 10
+    dt = frame[frame.parameter == "dt"].set_index("value")
+    assert dt.loc[150.0, "stable"] == False and "velocity" in dt.loc[150.0, "reason"]   # noqa: E712
+    assert dt.loc[150.0, "step"] < 6 and dt.loc[150.0, "particles"]
+    assert dt.loc[1.0, "stable"] and dt.loc[1.0, "step"] == 6
+    summary = json.loads((ctx.data / "stress_summary.json").read_text())
+    assert summary["largest_stable_dt"] == 2.0 and summary["smallest_unstable_dt"] == 150.0
+    calls.clear()
+    again = stress.run_stress(ctx)                     # all cached: nothing runs, same table
+    assert calls == []
+    pd.testing.assert_frame_equal(again, frame)
