@@ -300,3 +300,17 @@ def test_shape_energy_is_eq_20():
     assert np.allclose(render.shape_energy(w, 2.0, 2000.0), 2.0 * (1.0 - np.exp(-2000.0 * w)))
     with pytest.raises(ValueError, match="color_by"):
         render.render_particles({"position": np.zeros((1, 3))}, None, "x.png", color_by="pressure")
+
+
+def test_failed_study_is_shown_in_its_sections(tmp_path):
+    out = tmp_path / "study"
+    (out / "data").mkdir(parents=True)
+    (out / "data" / "demo_status.json").write_text(json.dumps({"scale": "smoke", "studies": {
+        "stress": {"ok": False, "error": "StudyError: stress: 3 of 3 runs failed\n  a\n  b\n  c\n  d", "seconds": 1.0},
+        "sweep": {"ok": True, "error": None, "seconds": 2.0}}}))
+    page = build_report(out).read_text()
+    sections = _sections(page)
+    assert "The stress study failed in this run: StudyError: stress: 3 of 3 runs failed" in sections["stress"]
+    assert "2 more lines" in sections["stress"]
+    assert "failed" not in sections["sweep"]
+    assert "Studies that failed in this run: stress" in page

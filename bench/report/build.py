@@ -94,7 +94,8 @@ class Section:
 
     @property
     def missing(self) -> bool:
-        return bool(self.blocks) and all(b.kind == "note" and b.level == "missing" for b in self.blocks)
+        """No data shown: only notes (missing inputs, failures)."""
+        return bool(self.blocks) and all(b.kind == "note" and b.level in ("missing", "error") for b in self.blocks)
 
 
 class Inputs:
@@ -119,6 +120,16 @@ class Inputs:
                 df = pd.read_csv(found)
                 self._cache[name] = (df if len(df) else None, found)
         return self._cache[name]
+
+    def study_status(self) -> dict:
+        """study name -> {"ok", "error", "seconds"} from OUT/data/demo_status.json (written by cloudpbf demo)."""
+        path = self.data / "demo_status.json"
+        if not path.is_file():
+            return {}
+        try:
+            return dict(json.loads(path.read_text()).get("studies", {}))
+        except (json.JSONDecodeError, OSError, AttributeError):
+            return {}
 
     def environment(self) -> dict | None:
         path = self.data / "environment.json"
@@ -162,6 +173,9 @@ def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) 
 
 
 def _provenance(*frames: pd.DataFrame | None, env: dict | None = None) -> str:
+    """'device: ...; commit: ...' of the data shown (environment.json's when the CSVs lack them)."""
+    if all(df is None for df in frames):
+        return ""
     parts = []
     for key in ("device", "commit"):
         values = []
@@ -435,28 +449,52 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.provenance = _provenance(ts, prof, env=env)
 
 
+SWEEP_HIDDEN = ("device", "commit", "run_dir")
+
+
 def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
     df, _ = inp.csv("sweep")
     if df is None:
         _missing(sec, "sweep.csv (run time against error)", "sweep", inp.out)
         return
-    sec.add("image", plots.pareto_plot(df), caption=(
+    df = df.copy()
+    reference = (df["reference"].map(plots._truthy) if "reference" in df.columns
+                 else pd.to_numeric(df["error_self"], errors="coerce") <= 0)
+    sec.add("image", plots.pareto_plot(df, reference=reference), caption=(
         "Each point one run; error = difference of the cloud statistics from the finest run of the same method "
-        "(left) and of the other method (right); lines: Pareto fronts (no run is both faster and more accurate)."))
-    fronts = []
+        "(left) and of the other method (right); lines: Pareto fronts per method and mode (no run on a front is "
+        "beaten in both wall time and error by another of its group)."))
     keys = [k for k in ("method", "mode") if k in df.columns]
-    for _, g in df.groupby(keys, sort=True):
-        fronts.append(plots.pareto_front(g[g["error_self"] > 0], "wall_s", "error_self"))
-    cols = [c for c in ("method", "mode", "parameter", "value", "wall_s", "error_self", "error_other") if c in df.columns]
+    measured = df[~reference & df["error_self"].notna() & df["wall_s"].notna()]
+    fronts = [plots.pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
+    cols = [c for c in ("method", "mode", "parameter", "value", "particles", "cells", "wall_s", "error_self",
+                        "error_other") if c in df.columns]
     if fronts:
         sec.add("table", _table(pd.concat(fronts)[cols]), caption=(
-            "runs on the Pareto front of each method / mode (error_self; references with zero error excluded)"))
-    verdict = _verdict(df)
+            "runs on the Pareto front of each method / mode (error_self; the reference runs excluded)"))
+    verdict = _study_verdict(inp) or _verdict(measured)
     if verdict:
         sec.add("text", verdict)
-    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns])),
-            caption="all runs")
+    if "stable" in df.columns:
+        unstable = df[~df["stable"].map(plots._truthy)]
+        if len(unstable):
+            sec.add("note", f"{len(unstable)} sweep run(s) went unstable and have no wall time or error: "
+                    + "; ".join(f"{r.method} {r.parameter} = {r.value}: {getattr(r, 'reason', '')}"
+                                for r in unstable.itertuples()), level="warn")
+    sec.add("table", _table(df.drop(columns=[c for c in SWEEP_HIDDEN if c in df.columns])), caption="all runs")
     sec.provenance = _provenance(df, env=env)
+
+
+def _study_verdict(inp: Inputs) -> str:
+    """The sweep study's own verdict (OUT/data/sweep_verdict.json), if it wrote one."""
+    path = inp.data / "sweep_verdict.json"
+    if not path.is_file():
+        return ""
+    data = json.loads(path.read_text())
+    text = str(data.get("verdict", ""))
+    if text and data.get("metric"):
+        text += f" (metric: {data['metric']})"
+    return text
 
 
 def _verdict(df: pd.DataFrame) -> str:
@@ -465,7 +503,7 @@ def _verdict(df: pd.DataFrame) -> str:
         return ""
     fronts = {}
     for mode in ("non-adaptive", "adaptive"):
-        g = df[(df["mode"] == mode) & (df["error_self"] > 0)]
+        g = df[(df["mode"] == mode) & (df["method"] == "particles")]
         if len(g.dropna(subset=["wall_s", "error_self"])):
             fronts[mode] = plots.pareto_front(g, "wall_s", "error_self")
     if len(fronts) < 2:
@@ -546,6 +584,24 @@ def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
     ])
 
 
+STUDY_OF_SECTION = {"table1": "table1", "phases": "table1", "scaling": "scaling", "adaptive": "compare",
+                    "compare": "compare", "sweep": "sweep", "stress": "stress", "renders": "renders",
+                    "figure1": "renders", "figure3": "renders"}
+"""Which study (a key of demo_status.json) writes the inputs of each section."""
+
+
+def _study_failure(status: dict, section_id: str) -> str:
+    study = STUDY_OF_SECTION.get(section_id)
+    entry = status.get(study) if study else None
+    if not isinstance(entry, dict) or entry.get("ok", True):
+        return ""
+    error = str(entry.get("error", "no error recorded")).strip()
+    lines = error.splitlines()
+    short = "\n".join(lines[:3]) + (f"\n... ({len(lines) - 3} more lines in data/demo_status.json)"
+                                     if len(lines) > 3 else "")
+    return f"The {study} study failed in this run: {short}"
+
+
 BUILDERS = {
     "environment": _environment, "table1": _table1, "phases": _phases, "scaling": _scaling,
     "adaptive": _adaptive, "compare": _compare, "sweep": _sweep, "stress": _stress,
@@ -567,9 +623,13 @@ def build_report(out_dir) -> Path:
         env_error = None
     except (json.JSONDecodeError, OSError) as exc:
         env, env_error = None, f"{type(exc).__name__}: {exc}"
+    status = inp.study_status()
     sections = []
     for sid, title in SECTIONS:
         sec = Section(sid, title)
+        failure = _study_failure(status, sid)
+        if failure:
+            sec.add("note", failure, level="error")
         try:
             if sid == "environment" and env_error:
                 sec.add("note", f"could not read environment.json: {env_error}", level="error")
@@ -586,6 +646,7 @@ def build_report(out_dir) -> Path:
         generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         scale=(env or {}).get("scale", "unknown"),
         n_missing=sum(s.missing for s in sections),
+        failed_studies=sorted(k for k, v in status.items() if isinstance(v, dict) and not v.get("ok", True)),
         Markup=jinja2.utils.markupsafe.Markup,
     )
     target = out / "index.html"

@@ -235,12 +235,16 @@ def pareto_front(df: pd.DataFrame, cost: str = "wall_s", error: str = "error_sel
     return d.loc[keep]
 
 
-def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_other")) -> str:
+def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_other"),
+                reference: pd.Series | None = None) -> str:
     """Wall time against error per method (and mode), with the Pareto front of each as a line.
 
-    A run with zero error is the reference the errors are measured against: drawn as a
-    star, left out of the fronts.
+    ``reference`` marks the runs the errors are measured against (default: error_self
+    == 0): drawn as dotted vertical lines at their wall time, left out of the fronts.
     """
+    if reference is None:
+        reference = pd.to_numeric(df["error_self"], errors="coerce") <= 0
+    df = df.assign(_reference=np.asarray(reference, dtype=bool))
     errors = [e for e in errors if e in df.columns and df[e].notna().any()]
     fig, axes = plt.subplots(1, len(errors), figsize=(5.8 * len(errors), 4.4), squeeze=False)
     titles = {"error_self": "error against the method's own finest run",
@@ -253,14 +257,17 @@ def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_
             method, mode = (key + ("",))[:2]
             name = method if mode in ("", method) else f"{method} {mode}"
             color = _color(method, mode, i)
-            ref = g[err] <= 0
+            ref = g["_reference"]
             for j, (param, gp) in enumerate(g[~ref].groupby("parameter", sort=True)):
                 ax.scatter(gp["wall_s"], gp[err], color=color, marker=markers[j % len(markers)], alpha=0.75,
                            label=f"{name}: {param}")
             if ref.any():
                 for x in g[ref]["wall_s"]:
                     ax.axvline(x, color=color, ls=":", lw=1)
-            front = pareto_front(g[~ref], "wall_s", err)
+                shown = g[ref & (g[err] > 0)]
+                if len(shown):  # a reference has an error against the other method's reference
+                    ax.scatter(shown["wall_s"], shown[err], color=color, marker="*", s=140, label=f"{name} reference")
+            front = pareto_front(g[~ref & (g[err] > 0)], "wall_s", err)
             if len(front):
                 ax.step(front["wall_s"], front[err], where="post", color=color, lw=2, alpha=0.9,
                         label=f"{name} Pareto front")
