@@ -312,5 +312,5 @@ def test_failed_study_is_shown_in_its_sections(tmp_path):
     sections = _sections(page)
     assert "The stress study failed in this run: StudyError: stress: 3 of 3 runs failed" in sections["stress"]
     assert "2 more lines" in sections["stress"]
-    assert "failed" not in sections["sweep"]
+    assert "study failed" not in sections["sweep"]
     assert "Studies that failed in this run: stress" in page
