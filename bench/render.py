@@ -257,6 +257,10 @@ def _add_particles(pv, plotter, state, scene, color_by, view, window_size, thres
     if color_by == "cloud":
         keep = values > threshold                   # clear air is fully transparent
         opacity = np.clip(values[keep] / max(hi, 1e-12), 0.08, 1.0) * 0.9
+    elif color_by == "temperature_anomaly" and fade:
+        bound = max(abs(lo), abs(hi), 1e-12)         # warm and cold parcels opaque, neutral air clear
+        keep = np.abs(values) > 0.05 * bound
+        opacity = np.clip(np.abs(values[keep]) / bound, 0.05, 1.0)
     elif fade:
         opacity = 0.12 + 0.88 * np.clip((values - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
     if not keep.any():
@@ -284,8 +288,10 @@ def render_particles(state: Mapping, scene, out_png, color_by: str = "cloud", vi
     """Render particles of a ``Simulation.state()`` dict to a PNG.
 
     ``color_by``: 'cloud' (only particles with w > threshold, opacity rising with w),
-    'temperature', 'temperature_anomaly' (T - T0(y)), 'shape_energy' (eq. 20, the
-    scene's k_p and k_c) or 'level'.  ``view``: 'iso' or 'front'.
+    'cloud_density' (every particle coloured by w), 'temperature', 'temperature_anomaly'
+    (T - T0(y)), 'shape_energy' (eq. 20, the scene's k_p and k_c) or 'level'.
+    ``view``: 'iso' (perspective; low values of the last four fade out so the inside
+    shows) or 'front' (parallel projection along -z, for slabs).
     """
     if color_by not in COLOR_BY:
         raise ValueError(f"color_by = {color_by!r}: allowed values are {', '.join(COLOR_BY)}")
@@ -293,7 +299,10 @@ def render_particles(state: Mapping, scene, out_png, color_by: str = "cloud", vi
     plotter = pv.Plotter(off_screen=True, window_size=tuple(window_size))
     plotter.set_background(SKY, top="#3d6fa8")
     _ground_and_box(pv, plotter, scene)
-    drawn = _add_particles(pv, plotter, state, scene, color_by, view, window_size, threshold, point_size)
+    # in a 3D view an opaque block of particles shows only its surface: let low values fade
+    fade = view == "iso" and color_by in ("temperature_anomaly", "shape_energy", "cloud_density", "level")
+    drawn = _add_particles(pv, plotter, state, scene, color_by, view, window_size, threshold, point_size,
+                           fade=fade)
     n = len(state["position"])
     text = title or f"{scene.name}: {n:,} particles, coloured by {color_by}"
     if color_by == "cloud":

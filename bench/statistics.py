@@ -47,6 +47,7 @@ __all__ = [
     "liquid_water_path",
     "cloud_base_top",
     "cloud_objects",
+    "object_volumes",
     "vertical_profiles",
     "diagnostics",
     "particle_diagnostics",
@@ -430,6 +431,14 @@ def cloud_objects(mask: np.ndarray, periodic: Sequence[bool] = _DEFAULT_PERIODIC
         n = int(lut.max())
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     return labels, sizes
+
+
+def object_volumes(fields: Mapping, cell_size=None, threshold: float = CLOUD_THRESHOLD,
+                   periodic: Sequence[bool] = _DEFAULT_PERIODIC) -> np.ndarray:
+    """Volumes (m^3) of the cloud objects of gridded fields, largest first (the size distribution)."""
+    dx, _ = _cell_geometry(fields, cell_size, None)
+    _, sizes = cloud_objects(cloudy_mask(_grid(fields, "cloud"), threshold), periodic)
+    return np.sort(sizes)[::-1] * float(np.prod(dx))
 
 
 def diagnostics(fields: Mapping, cell_size=None, origin=None, threshold: float = CLOUD_THRESHOLD,

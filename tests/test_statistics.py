@@ -137,6 +137,10 @@ def test_object_wrapping_in_x_and_z_at_a_corner():
     fields = {"cloud": np.where(mask, 1e-3, 0.0), "vapor": np.zeros(mask.shape),
               "temperature": np.full(mask.shape, 280.0)}
     assert st.diagnostics(fields, cell_size=1.0)["n_objects"] == 1
+    two = np.zeros((8, 4, 8))
+    two[0, 1, 0] = two[-1, 1, 0] = two[3:5, 1:3, 3:5] = 1e-3      # 2 cells wrapped, 8 cells in the middle
+    volumes = st.object_volumes({"cloud": two}, cell_size=(10.0, 20.0, 10.0))
+    assert volumes.tolist() == [8 * 2000.0, 2 * 2000.0]
 
 
 # --------------------------------------------------------------------------------------------
