@@ -119,8 +119,11 @@ def build_params(scene: Scene, n_fluid: int, capacity: int):
         p.latent_heat = a.latent_heat
         p.phase_rate = a.phase_rate
         p.saturation = [a.saturation_a, a.saturation_b, a.saturation_c]
-        p.heating_rate = a.heating_rate
-        p.heating_depth = a.heating_depth
+        # Ground heating acts on the lowest particle layer at least; the rate is scaled so the heat
+        # flux S_e * heating_depth (K m/s) does not depend on the particle spacing.
+        depth = max(a.heating_depth, scene.particles.spacing)
+        p.heating_rate = a.heating_rate * (a.heating_depth / depth if depth > 0 else 0.0)
+        p.heating_depth = depth
         p.noise_frequency = a.noise_frequency
         p.noise_amplitude = a.noise_amplitude
         p.noise_offset = list(a.noise_offset)
@@ -187,6 +190,31 @@ class Simulation:
                 raise InstabilityError(int(step), reason, [int(i) for i in ids.split(",") if i],
                                        int(last_good)) from None
             raise
+
+    def adapt(self) -> None:
+        """Run only the split/merge phase (section 5.2) on the current state."""
+        self._solver.adapt_now()
+
+    @classmethod
+    def from_arrays(cls, scene: Scene | str, fluid: dict, boundary: dict | None = None,
+                    backend: str = "auto") -> "Simulation":
+        """A simulation from given particle arrays (keys as `state()`: position, velocity, mass, id,
+        temperature, vapor, cloud); boundary particles from the scene unless given."""
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
+        n = len(fluid["position"])
+        zeros = np.zeros(n, np.float32)
+        arrays = {
+            "position": np.ascontiguousarray(fluid["position"], np.float32),
+            "velocity": np.ascontiguousarray(fluid["velocity"], np.float32),
+            "mass": np.ascontiguousarray(fluid["mass"], np.float32),
+            "id": np.ascontiguousarray(fluid.get("id", np.arange(n)), np.uint32),
+        }
+        for key in ("temperature", "vapor", "cloud"):
+            arrays[key] = np.ascontiguousarray(fluid.get(key, zeros), np.float32)
+        boundary = boundary if boundary is not None else initial_state.boundary_particles(scene)
+        state = {"fluid": arrays, "boundary": boundary, "step": 0, "time": 0.0, "next_id": int(arrays["id"].max()) + 1 if n else 0}
+        return cls(scene, backend=backend, _state=state)
 
     @property
     def step_count(self) -> int:

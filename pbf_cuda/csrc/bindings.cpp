@@ -230,6 +230,7 @@ NB_MODULE(_core, m) {
         .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
         .def("step", [](PySolver& s, int n) { s.impl_->step(n); }, "n"_a, nb::call_guard<nb::gil_scoped_release>())
+        .def("adapt_now", [](PySolver& s) { s.impl_->adapt_now(); }, nb::call_guard<nb::gil_scoped_release>())
         .def("size", [](PySolver& s) { return s.impl_->size(); })
         .def("step_count", [](PySolver& s) { return s.impl_->step_count(); })
         .def("time", [](PySolver& s) { return s.impl_->time(); })

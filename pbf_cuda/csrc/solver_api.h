@@ -64,6 +64,8 @@ public:
     virtual void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) = 0;
     virtual void set_clock(long long step, double time, uint32_t next_id) = 0;
     virtual void step(int n) = 0;
+    // Runs only the split/merge phase on the current state (for tests and studies of section 5.2).
+    virtual void adapt_now() = 0;
     virtual std::size_t size() const = 0;
     virtual long long step_count() const = 0;
     virtual double time() const = 0;

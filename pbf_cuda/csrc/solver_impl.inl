@@ -384,6 +384,14 @@ public:
         }
     }
 
+    void adapt_now() override {
+        if (!p_.adaptive) throw std::invalid_argument("adapt_now: the scene is not adaptive");
+        thrust::copy(thrust::device, pos_.begin(), pos_.begin() + n_, pred_.begin());
+        build_neighbor_grid();
+        adapt();
+        clock_.collect(totals_);
+    }
+
     std::size_t size() const override { return n_; }
     long long step_count() const override { return step_; }
     double time() const override { return time_; }

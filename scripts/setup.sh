@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Set up cloudpbf on a fresh machine: system libraries for off-screen rendering, a virtual
+# environment in .venv, and the package with its compiled solver (CPU backend always, CUDA backend
+# when nvcc is found). Usage: scripts/setup.sh [extras]   (default extras: all)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+extras="${1:-all}"
+
+# Off-screen OpenGL for pyvista/VTK renders in the report (OSMesa, EGL).
+need_pkgs=()
+for lib in libOSMesa.so libEGL.so.1 libGL.so.1 libXrender.so.1; do
+  ldconfig -p 2>/dev/null | grep -q "$lib" || need_pkgs+=("$lib")
+done
+if [ "${#need_pkgs[@]}" -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1 && SUDO="sudo"
+  echo "setup: installing off-screen rendering libraries (missing: ${need_pkgs[*]})"
+  $SUDO apt-get update -qq || true
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 libegl1 libgl1 libxrender1 libxt6 >/dev/null \
+    || echo "setup: could not install rendering libraries; renders will be reported as unavailable"
+fi
+
+python=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$python" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[${extras}]"
+.venv/bin/python -c "import pbf_cuda; print('setup: pbf_cuda backends available:', pbf_cuda.available_backends())"
