@@ -93,7 +93,7 @@ def test_periodic_translation_invariance(backend):
     diff = np.mod(b["position"] - a["position"] - shift + L / 2, L) - L / 2
     assert np.abs(diff).max() < 1e-3 * scene.particles.spacing
     assert np.allclose(a["temperature"], b["temperature"], atol=1e-4)
-    assert np.allclose(a["velocity"], b["velocity"], atol=1e-4)
+    assert np.allclose(a["velocity"], b["velocity"], atol=1e-3)   # float32 positions of ~1 km: ~1e-4 m/s
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
