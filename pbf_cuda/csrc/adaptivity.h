@@ -4,7 +4,7 @@
 // Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
 // x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
 // of level l+1. It splits only if (a) no other candidate of higher priority (larger E, then smaller id)
-// lies within the conflict radius (so children of two parents splitting in the same step can never
+// lies within the conflict radius (larger E wins; ties go to a hash of id and step) (so children of two parents splitting in the same step can never
 // come closer than the threshold), and (b) no existing particle other than the parent lies within
 // min_distance * h_{l+1} of either child. Winners get slots from an exclusive prefix sum; the parent's
 // slot holds child 1, slot n + scan holds child 2. With the capacity full, the winners that fit split
@@ -86,11 +86,15 @@ struct DecideSplits {
         int l = radii.level_of_mass(pi.w);
         float ei = energy[i];
         uint32_t idi = id[i];
+        // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
+        // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
+        uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
         bool win = true;
         for_each_neighbor(grid, fluid, xi, ap.conflict_radius, [&](uint32_t j, Vec3, float) {
             if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
             float ej = energy[j];
-            if (ej > ei || (ej == ei && id[j] < idi)) win = false;
+            uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
+            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) win = false;
         });
         if (!win) return;
         Vec3 n = split_direction(idi, step);

@@ -1,0 +1,215 @@
+"""Cloud physics (issue 3): eq. 5-17 against closed forms, conservation laws and linear theory."""
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pbf_cuda._core as core
+from pbf_cuda import Simulation, load_scene
+from pbf_cuda.noise import simplex2
+from solver_helpers import BACKENDS, by_id
+
+DATA = Path(__file__).parent / "data"
+A, B, C = 1.795e5, -4302.6, -29.65
+
+
+def saturation(T):
+    return A * np.exp(B / (T + C))
+
+
+def test_noise_matches_the_committed_reference_table():
+    rows = list(csv.DictReader(line for line in open(DATA / "noise_reference.csv") if not line.startswith("#")))
+    x = np.array([float(r["x"]) for r in rows])
+    y = np.array([float(r["y"]) for r in rows])
+    expected = np.array([float(r["noise"]) for r in rows])
+    assert len(rows) >= 200 and np.abs(expected).max() > 0.5
+    assert np.abs(core.simplex2(x, y) - expected).max() < 1e-12      # the solver's C++ noise
+    assert np.abs(simplex2(x, y) - expected).max() < 1e-12           # the Python reference
+
+
+def test_phase_transition_matches_closed_form_without_latent_heat():
+    # Q = 0, T fixed: v(t) = gamma + (v0 - gamma) exp(-alpha t), w = q - v (eq. 9-10).
+    rng = np.random.default_rng(1)
+    T = rng.uniform(270, 300, 500).astype(np.float32)
+    q = saturation(T.astype(np.float64)) * rng.uniform(0.5, 1.5, 500)
+    w0 = q * rng.uniform(0.0, 0.6, 500)
+    v0 = q - w0
+    alpha, dt = 0.7, 1.3
+    out = core.phase_transition(T, v0.astype(np.float32), w0.astype(np.float32), dt, alpha, 0.0, A, B, C)
+    gamma = np.minimum(saturation(T.astype(np.float64)), q)
+    v_exact = gamma + (v0 - gamma) * np.exp(-alpha * dt)
+    assert np.allclose(out[:, 1], v_exact, rtol=2e-5, atol=1e-9)
+    assert np.allclose(out[:, 1] + out[:, 2], q, rtol=1e-6)          # v + w conserved
+    assert np.array_equal(out[:, 0], T)                               # no latent heat with Q = 0
+
+
+@pytest.mark.parametrize("alpha_dt", [1e-3, 1.0, 1e2, 1e6])
+def test_phase_transition_is_stable_for_any_alpha_dt(alpha_dt):
+    T = np.array([285.0, 290.0, 300.0, 280.0], np.float32)
+    v = (saturation(T.astype(np.float64)) * np.array([1.3, 0.7, 1.05, 0.9])).astype(np.float32)
+    w = np.array([0.0, 2e-3, 1e-4, 0.0], np.float32)
+    out = core.phase_transition(T, v, w, 1.0, alpha_dt, 2489.0, A, B, C)
+    assert np.all(np.isfinite(out)) and np.all(out[:, 2] >= 0) and np.all(out[:, 1] >= 0)
+    assert np.allclose(out[:, 1] + out[:, 2], v + w, rtol=1e-6)
+    # Latent heat (eq. 11): T - Q w is unchanged.
+    assert np.allclose(out[:, 0] - 2489.0 * out[:, 2], T - 2489.0 * w, atol=2e-3)
+    if alpha_dt >= 1e2:
+        # Converged to saturation where there is cloud (within the linearisation's accuracy).
+        cloudy = out[:, 2] > 0
+        assert np.allclose(out[cloudy, 1], saturation(out[cloudy, 0].astype(np.float64)), rtol=2e-2)
+
+
+def small_cloud_scene(**overrides):
+    base = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "time.dt": 2.0}
+    base.update(overrides)
+    return load_scene("growing", **base)
+
+
+def totals(state):
+    m = state["mass"].astype(np.float64)
+    return {
+        "water": np.sum(m * (state["vapor"].astype(np.float64) + state["cloud"])),
+        "cloud": np.sum(m * state["cloud"]),
+    }
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_total_water_is_conserved_over_a_long_run(backend):
+    scene = small_cloud_scene(**{"atmosphere.initial_vapor_ratio": 1.02, "atmosphere.heating_rate": 0.2})
+    sim = Simulation(scene, backend=backend)
+    before = totals(sim.state())
+    sim.step(200)
+    after = totals(sim.state())
+    assert after["cloud"] > 0.01 * after["water"]                   # condensation happened
+    assert abs(after["water"] / before["water"] - 1.0) < 2e-6       # float32 rounding over 200 steps
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_moist_static_energy_is_conserved_along_particles(backend):
+    # Without heating and smoothing, T + Gamma_d y - Q w is carried by each particle (eq. 7, 11).
+    scene = small_cloud_scene(**{"atmosphere.initial_vapor_ratio": 1.02, "atmosphere.heating_rate": 0.0,
+                                 "smoothing.kappa": 0.0, "particles.max_speed": 3.0})
+    a = scene.atmosphere
+    sim = Simulation(scene, backend=backend)
+
+    def invariant(st):
+        return st["temperature"].astype(np.float64) + a.dry_lapse_rate * st["position"][:, 1] - a.latent_heat * st["cloud"]
+
+    s0 = by_id(sim.state())
+    sim.step(60)
+    s1 = by_id(sim.state())
+    assert np.abs(s1["position"][:, 1] - s0["position"][:, 1]).max() > 20.0   # particles did move vertically
+    assert s1["cloud"].max() > 1e-4                                          # and condensed
+    assert np.abs(invariant(s1) - invariant(s0)).max() < 2e-3                # K
+
+
+def smoothing_sim(temperature_of, kappa=0.1):
+    scene = small_cloud_scene(**{"smoothing.kappa": kappa, "atmosphere.heating_rate": 0.0,
+                                 "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
+                                 "particles.max_speed": 0.0, "time.dt": 1e-3})
+    base = Simulation(scene, backend="cpu")
+    st = base.state()
+    st["temperature"] = temperature_of(st["position"]).astype(np.float32)
+    bnd = base.boundary_state()                      # walls carry the same field
+    bnd["temperature"] = temperature_of(bnd["position"]).astype(np.float32)
+    bnd["vapor"] = base._solver.get_float("boundary_vapor")
+    return Simulation.from_arrays(scene, st, boundary=bnd, backend="cpu"), st
+
+
+def test_smoothing_leaves_constant_and_linear_fields_unchanged():
+    for field in (lambda p: np.full(len(p), 290.0), lambda p: 300.0 - 0.0065 * p[:, 1]):
+        sim, st = smoothing_sim(field)
+        sim.step(1)
+        after = by_id(sim.state())
+        assert np.abs(after["temperature"] - by_id(st)["temperature"]).max() < 2e-4
+
+
+def test_smoothing_lowers_the_variance_of_a_noisy_field():
+    rng = np.random.default_rng(3)
+    noise = {}
+
+    def noisy(p):
+        noise["dT"] = rng.normal(0.0, 1.0, len(p))
+        return 300.0 - 0.0065 * p[:, 1] + noise["dT"]
+
+    sim, st = smoothing_sim(noisy)
+    env = lambda s: 300.0 - 0.0065 * s["position"][:, 1]
+    var0 = np.var(st["temperature"] - env(st))
+    sim.step(5)
+    after = sim.state()
+    var1 = np.var(after["temperature"] - env(after))
+    assert var1 < 0.8 * var0
+    off, _ = smoothing_sim(noisy, kappa=0.0)
+    assert not off.scene.smoothing_active
+    off.step(1)
+    assert "smoothing" not in off.timings()                         # kappa = 0: no pass, no time
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_parcel_condenses_at_the_lifting_condensation_level(backend):
+    scene = load_scene("parcel")
+    a = scene.atmosphere
+    sim = Simulation(scene, backend=backend)
+    for _ in range(scene.time.steps):
+        sim.step(1)
+        st = sim.state()
+        cloudy = st["cloud"] > 1e-6
+        if cloudy.any():
+            break
+    assert cloudy.any(), "no cloud formed"
+    y = st["position"][cloudy, 1].astype(np.float64)
+    w = st["cloud"][cloudy].astype(np.float64)
+    q = st["vapor"][cloudy] + w
+    theta = st["temperature"][cloudy] + a.dry_lapse_rate * y - a.latent_heat * w    # surface temperature T_s
+    dew_point = a.saturation_b / np.log(q / a.saturation_a) - a.saturation_c         # T_d = B / ln(v/A) - C
+    lcl = (theta - dew_point) / a.dry_lapse_rate                                      # z = (T_s - T_d) / Gamma_d
+    assert np.all(np.abs(y - lcl) < 0.1 * lcl)
+    ground = (a.ground_temperature - (a.saturation_b / np.log(a.initial_vapor_ratio *
+              scene.saturation(a.ground_temperature) / a.saturation_a) - a.saturation_c)) / a.dry_lapse_rate
+    assert ground * 0.9 < y.min() < 1.5 * ground                     # near the surface air's LCL (~381 m)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_internal_gravity_wave_frequency(backend):
+    scene = load_scene("stratified")
+    a = scene.atmosphere
+    Lx, Ly = scene.domain.size[:2]
+    kx, ky = 2 * np.pi / Lx, np.pi / Ly
+    sim = Simulation(scene, backend=backend)
+    times, amps = [], []
+    for _ in range(scene.time.steps // 5):
+        st = sim.state()
+        p, v = st["position"], st["velocity"]
+        mode = np.cos(kx * p[:, 0]) * np.sin(ky * p[:, 1])
+        amps.append(-(v[:, 1] * mode).sum() / (mode * mode).sum())
+        times.append(sim.time)
+        sim.step(5)
+    t, s = np.array(times), np.array(amps)
+    idx = np.where(np.sign(s[1:]) != np.sign(s[:-1]))[0]
+    crossings = t[idx] - s[idx] * (t[idx + 1] - t[idx]) / (s[idx + 1] - s[idx])
+    assert len(crossings) >= 2
+    period = 2.0 * np.mean(np.diff(crossings)) if len(crossings) > 2 else 2.0 * (crossings[1] - crossings[0])
+    T_mid = a.ground_temperature - a.lapse_rate * Ly / 2
+    N = np.sqrt(9.81 / T_mid * (a.dry_lapse_rate - a.lapse_rate))          # Brunt-Vaisala frequency
+    expected = 2 * np.pi / (N * kx / np.hypot(kx, ky))                      # omega = N kx / |k|
+    assert abs(period / expected - 1.0) < 0.1
+
+
+def test_ground_heating_follows_the_noise_pattern():
+    scene = small_cloud_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
+                                 "smoothing.kappa": 0.0, "particles.max_speed": 0.0, "time.dt": 1.0})
+    a = scene.atmosphere
+    sim = Simulation(scene, backend="cpu")
+    s0 = by_id(sim.state())
+    sim.step(1)
+    s1 = by_id(sim.state())
+    dT = s1["temperature"] - s0["temperature"]
+    p = s1["position"]
+    depth = max(a.heating_depth, scene.particles.spacing)
+    ground = p[:, 1] < depth
+    from pbf_cuda.noise import heating_pattern
+    expect = a.heating_rate * a.heating_depth / depth * heating_pattern(p[:, 0], p[:, 2], a.noise_frequency,
+                                                                       a.noise_amplitude, a.noise_offset)
+    assert np.allclose(dT[ground], expect[ground], atol=1e-4)
+    assert np.abs(dT[~ground]).max() < 1e-4
