@@ -41,8 +41,8 @@ import json
 import math
 import os
 import re
-import tempfile
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -79,13 +79,16 @@ def default_root() -> Path:
 # ---- atomic writes ---------------------------------------------------------------------------
 @contextlib.contextmanager
 def atomic_path(path: str | Path):
-    """Yield a temporary path beside `path`; on success it replaces `path` in one rename."""
+    """Yield a temporary path beside `path`; on success it replaces `path` in one rename.
+
+    The temporary file is created with the usual permissions (0666 less the umask), so shared run
+    caches and reports stay readable by others."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp"
+    os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
     try:
-        yield Path(tmp)
+        yield tmp
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -695,11 +698,13 @@ class _Run:
                     targets.append(spec.warmup_steps)
                 n = min(targets) - s0
                 t0 = time.perf_counter()
-                sim.step(n)
-                elapsed = time.perf_counter() - t0
-                step_wall += elapsed
-                if s0 >= spec.warmup_steps:
-                    timed_wall += elapsed
+                try:
+                    sim.step(n)
+                finally:                       # a failing step's time counts too
+                    elapsed = time.perf_counter() - t0
+                    step_wall += elapsed
+                    if s0 >= spec.warmup_steps:
+                        timed_wall += elapsed
                 s = sim.step_count
                 row = self.adapter.step_row(sim)
                 self.adapter.check(sim, spec, row)

@@ -189,3 +189,56 @@ def test_particles_escaping_a_wall_are_caught_at_their_step(toy_solver, tmp_path
     h = scene.kernel_radius
     assert steps["min_position_y"].min() >= -h                       # every stored step was inside
     assert res.step == steps["step"].max() + 1                        # caught at the first step outside
+
+
+# ---- the same guarantees with the compiled particle solver ---------------------------------------------
+def _solver_or_skip():
+    try:
+        from pbf_cuda.simulation import available_backends
+        available_backends()
+    except ImportError as exc:
+        pytest.skip(f"the particle solver is not built: {exc}")
+
+
+def small_cloud_scene(**overrides):
+    """growing resampled to ~2700 particles: about 20 ms a step on one CPU core."""
+    from bench.studies.scales import scale_scene
+    from pbf_cuda.scene import load_scene
+    scene = scale_scene(load_scene("growing"), 3000)
+    return scene.replace(**{"time.steps": 12, "time.snapshot_every": 4, **overrides})
+
+
+def test_real_solver_resume_is_bit_exact(tmp_path):
+    _solver_or_skip()
+    # diagnostics every 2 steps, checkpoints every 4: the crash after step 6 loses steps 5 and 6
+    spec = runs.RunSpec("particles", small_cloud_scene(), backend="cpu", seed=4, snapshot_every=2,
+                        checkpoint_every=4)
+    with pytest.raises(Crash):
+        runs.execute(spec, tmp_path / "a", quiet=True, on_step=crash_at(6))
+    resumed = runs.execute(spec, tmp_path / "a", quiet=True)
+    assert resumed.resumed_from == 4 and resumed.stable
+    straight = runs.execute(spec, tmp_path / "b", quiet=True)
+    a, b = resumed.snapshot(), straight.snapshot()
+    order_a, order_b = np.argsort(a["id"]), np.argsort(b["id"])      # the solver re-sorts particles by cell
+    for name in ("position", "velocity", "temperature", "vapor", "cloud"):
+        np.testing.assert_array_equal(a[name][order_a], b[name][order_b], err_msg=name)
+    cols = ["step", "time_s", "cloud_cover", "total_water", "total_heat", "density_error_mean"]
+    pd.testing.assert_frame_equal(resumed.stats()[cols], straight.stats()[cols])
+
+
+def test_real_solver_instability_is_recorded_without_nan(tmp_path):
+    _solver_or_skip()
+    # 100 K/s of ground heating (2000 times the paper's): the heated layer blows up within a few steps
+    scene = small_cloud_scene(**{"atmosphere.heating_rate": 100.0, "time.steps": 40, "time.snapshot_every": 1})
+    res = runs.execute(runs.RunSpec("particles", scene, backend="cpu", seed=0, record_steps=True), tmp_path,
+                       quiet=True)
+    assert res.stable is False and res.reason and 1 < res.step < 40
+    assert res.step > res.last_good_step
+    stats = res.stats()
+    assert stats["step"].max() <= res.last_good_step
+    numeric = stats.drop(columns=["cloud_base", "cloud_top", "base_p10", "top_p90"], errors="ignore")
+    assert np.isfinite(numeric.select_dtypes("number").to_numpy()).all()
+    steps = res.steps_table()
+    assert steps["step"].max() < res.step and np.isfinite(steps.select_dtypes("number").to_numpy()).all()
+    if "escaping" not in res.reason:
+        assert res.particles                                                  # the solver names them

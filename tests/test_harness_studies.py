@@ -128,16 +128,17 @@ def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, mon
 
     monkeypatch.setattr(runs, "execute", execute)
     ctx = StudyContext(out=tmp_path / "out", scale=TINY, runs_root=tmp_path / "runs", scheduler=INLINE, quiet=True)
-    # 10 cases, 8 distinct runs: dt = 2 s, heating x1 and alpha*dt = 1 are all the base scene
-    with pytest.raises(StudyError, match="1 of 8 runs failed"):
+    # 11 cases (3 dt, 2 iterations, 5 heating rates, 1 alpha*dt), 10 distinct runs: dt = 2 s and heating x1
+    # are both the base scene
+    with pytest.raises(StudyError, match="1 of 10 runs failed"):
         stress.run_stress(ctx)
-    assert len(calls) == 8 and not (ctx.data / "stress.csv").exists()
+    assert len(calls) == 10 and not (ctx.data / "stress.csv").exists()
     first_steps = toy_solver.steps_taken
     calls.clear()
     frame = stress.run_stress(ctx)                     # the rerun: only the lost run
     assert len(calls) == 1
     assert toy_solver.steps_taken - first_steps <= 6
-    assert len(frame) == 10
+    assert len(frame) == 11
     dt = frame[frame.parameter == "dt"].set_index("value")
     assert dt.loc[150.0, "stable"] == False and "velocity" in dt.loc[150.0, "reason"]   # noqa: E712
     assert dt.loc[150.0, "step"] < 6 and dt.loc[150.0, "particles"]
@@ -148,3 +149,36 @@ def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, mon
     again = stress.run_stress(ctx)                     # all cached: nothing runs, same table
     assert calls == []
     pd.testing.assert_frame_equal(again, frame)
+
+
+def test_stress_cases_change_one_parameter_each():
+    base = scale_scene(load_scene("growing"), 3000)
+    cases = stress.stress_cases(base, SCALES["smoke"])
+    for parameter, value, scene in cases:
+        if parameter == "alpha_dt":
+            assert scene.atmosphere.phase_rate * scene.time.dt == pytest.approx(value)
+            assert scene.atmosphere.initial_vapor_ratio == stress.SUPERSATURATION
+        elif parameter == "dt":
+            assert scene.time.dt == value and scene.pbf == base.pbf
+        elif parameter == "heating_rate":
+            assert scene.atmosphere.heating_rate == value <= stress.MAX_HEATING_RATE
+    heating = [v for p, v, _ in cases if p == "heating_rate"]
+    assert heating == sorted(set(heating)) and heating[0] == base.atmosphere.heating_rate
+
+
+def test_dask_workers_run_missing_specs_and_cached_ones_stay_home(tmp_path):
+    pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
+    scene = scale_scene(load_scene("growing"), 3000).replace(**{"time.steps": 4, "time.snapshot_every": 2})
+    specs = [runs.RunSpec("particles", scene, backend="cpu", seed=s) for s in (0, 1, 0)]   # one duplicate
+    ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", workers=2, quiet=True)
+    with ctx:
+        results = ctx.run_parallel(specs, "test")
+        env = ctx.client().run(lambda: __import__("os").environ.get("OMP_NUM_THREADS"))
+    cores = __import__("os").cpu_count() or 1
+    assert set(env.values()) == {str(max(1, cores // 2))}  # the cores shared out, no oversubscription
+    assert [r.seed for r in results] == [0, 1, 0] and results[0].path == results[2].path
+    assert all(r.stable and r.step == 4 for r in results)
+    assert len(list((tmp_path / "runs").iterdir())) == 2
+    again = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", quiet=True)
+    assert [r.path for r in again.run_parallel(specs, "test")] == [r.path for r in results]
+    assert again._client is None                          # everything cached: no cluster started

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +29,15 @@ INLINE = "inline"
 
 class StudyError(RuntimeError):
     """Some runs of a study failed (not instabilities: those are results).  Finished runs stay cached."""
+
+
+def _where(exc: BaseException) -> str:
+    """' (at file:line in function)' of the innermost frame of an exception's traceback, if it has one."""
+    frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ else []
+    if not frames:
+        return ""
+    f = frames[-1]
+    return f" (at {f.filename}:{f.lineno} in {f.name})"
 
 
 def _worker_env(threads: int) -> dict:
@@ -51,10 +61,10 @@ def local_cluster(n_workers: int, gpus: list[str] | None = None):
         workers = {f"gpu-{g}": {"cls": Nanny, "options": {
             "nthreads": 1, "env": {**_worker_env(threads), "CUDA_VISIBLE_DEVICES": g}}} for g in gpus}
         return SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": None}},
-                           silence_logs=logging.WARNING)
+                           silence_logs=logging.CRITICAL)
     threads = max(1, cores // n_workers)
     return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                        env=_worker_env(threads), silence_logs=logging.WARNING)
+                        env=_worker_env(threads), silence_logs=logging.CRITICAL)
 
 
 @dataclass
@@ -122,7 +132,8 @@ class StudyContext:
                 if isinstance(outcome, BaseException):  # a crashed run: report it, keep the others
                     spec = unique[key]
                     failures.append(f"{spec.solver} {spec.scene.name} seed {spec.seed} "
-                                    f"({spec.directory(self.runs_root, key)}): {type(outcome).__name__}: {outcome}")
+                                    f"({spec.directory(self.runs_root, key)}): {type(outcome).__name__}: {outcome}"
+                                    f"{_where(outcome)}")
                 else:
                     done[key] = runs.RunResult.load(outcome["path"])
                 bar.update(1)

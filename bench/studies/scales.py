@@ -43,7 +43,7 @@ class Scale:
     timing_steps: int                 # timed steps of a scaling run (after 2 warm-up steps)
 
 
-STRESS_DT = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+STRESS_DT = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)
 STRESS_ITERATIONS = (1, 2, 4, 8)
 STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)
 

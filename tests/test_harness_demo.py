@@ -1,0 +1,61 @@
+"""`cloudpbf demo --scale smoke` end to end: every study, the renders and the HTML report (CI runs it)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import pytest
+
+from bench.report.build import SECTIONS
+from bench.studies.table1 import TABLE1_COLUMNS
+
+pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
+
+DATA_FILES = ("environment.json", "table1.csv", "pbf_scaling.csv", "grid_scaling.csv", "compare_timeseries.csv",
+              "compare_profiles.csv", "sweep.csv", "stress.csv", "demo_status.json")
+
+
+@pytest.mark.slow
+def test_smoke_demo_writes_every_study_and_the_report(tmp_path):
+    out, root = tmp_path / "report", tmp_path / "runs"
+    env = {**os.environ, "CLOUDPBF_RUNS": str(root)}
+    cmd = [sys.executable, "-m", "bench.cli", "demo", "--scale", "smoke", "--out", str(out), "--quiet"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    first = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    index = out / "index.html"
+    assert f"report: {index}" in proc.stdout
+    html = index.read_text()
+    for section_id, _ in SECTIONS:
+        assert f'id="{section_id}"' in html, section_id
+    for name in DATA_FILES:
+        assert (out / "data" / name).is_file(), name
+    status = json.loads((out / "data" / "demo_status.json").read_text())["studies"]
+    assert all(s["ok"] for s in status.values()), status
+    assert json.loads((out / "data" / "environment.json").read_text())["scale"] == "cpu-smoke"
+    table1 = pd.read_csv(out / "data" / "table1.csv")
+    assert list(table1.columns[:len(TABLE1_COLUMNS)]) == list(TABLE1_COLUMNS)
+    assert list(table1["example"]) == ["growing", "growing", "cycling", "cycling"]
+    stable = table1[table1["stable"]]
+    phases = stable[["pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms", "merging_ms"]]
+    assert (stable["total_ms"] - phases.sum(axis=1, skipna=True)).abs().max() < 1e-6   # no double counting
+    assert stable[stable["mode"] == "non-adaptive"][["splitting_ms", "merging_ms"]].isna().all().all()
+    compare = pd.read_csv(out / "data" / "compare_timeseries.csv")
+    assert set(compare["mode"]) == {"non-adaptive", "adaptive", "grid"}
+    assert compare.groupby("mode")["seed"].nunique().min() >= 5
+    for render in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",
+                   "figure3_shape_energy"):
+        renders = out / "data" / "renders"
+        assert (renders / f"{render}.png").is_file() or (renders / f"{render}.unavailable.txt").is_file()
+    # the second demo finds every run in the cache: no run directory is added, and it is much faster
+    before = sorted(p.name for p in root.iterdir())
+    t0 = time.perf_counter()
+    again = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert sorted(p.name for p in root.iterdir()) == before
+    assert time.perf_counter() - t0 < first / 2
