@@ -112,9 +112,12 @@ def rendering_status() -> tuple[bool, str]:
             failures.append(f"{window or 'default window'}: timed out")
             continue
         if proc.returncode == 0:
-            if window:
+            got = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else (window or "")
+            if got.startswith("vtk") and got.endswith("RenderWindow"):  # VTK may fall back by itself
+                os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = got
+            elif window:
                 os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = window
-            return True, proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else (window or "default")
+            return True, got or "default window"
         last = (proc.stderr.strip().splitlines() or [f"exit code {proc.returncode}"])[-1]
         failures.append(f"{window or 'default window'}: {last[:200]}")
     return False, ("no off-screen OpenGL context (install libegl1 libegl-mesa0 libgl1-mesa-dri, "
