@@ -27,7 +27,10 @@ def _run(cmd: list[str]) -> str | None:
 
 @functools.lru_cache(maxsize=None)
 def commit() -> str:
-    """Short commit of the repository, '+dirty' when tracked files differ from it; 'unknown' outside git."""
+    """Short commit of the repository, '+dirty' when tracked files differ from it; 'unknown' outside git.
+    $CLOUDPBF_COMMIT overrides it (a copy of the tree without .git, e.g. on a remote GPU machine)."""
+    if os.environ.get("CLOUDPBF_COMMIT"):
+        return os.environ["CLOUDPBF_COMMIT"]
     head = _run(["git", "rev-parse", "--short=12", "HEAD"])
     if head is None:
         return "unknown"

@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# One batch on a CUDA machine: build, GPU tests, benchmarks (PBF scaling, Table 1, grid scaling).
+# Results go to $OUT (default reports/gpu/session); set CLOUDPBF_COMMIT when the tree has no .git.
+# Wheels missing on the machine can be carried in .whl/ (installed into /tmp/site first).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-reports/gpu/session}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 CLOUDPBF_RUNS=${CLOUDPBF_RUNS:-/tmp/cloudpbf-runs}
+stage() { echo "=== $1 ($(date +%T))"; }
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+  export PYTHONPATH=/tmp/site:$PWD
+else
+  export PYTHONPATH=$PWD
+fi
+stage "device"; nvidia-smi -L; nvcc --version | tail -1
+stage "build"
+python3 -m pip install -q --no-build-isolation --no-deps -e . > "$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
+python3 -c "import pbf_cuda; print('backends', pbf_cuda.available_backends())"
+stage "gpu tests"
+timeout 300 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_solver_core.py tests/test_cloud_physics.py \
+  tests/test_adaptive.py 2>&1 | tee "$OUT/gpu_tests.log" | tail -15
+for step in "$@"; do
+  stage "$step"
+  case "$step" in
+    scaling) timeout 240 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 --steps 20 --quiet \
+               --out "$OUT/pbf_scaling.csv" && cat "$OUT/pbf_scaling.csv" ;;
+    table1) timeout 400 python3 -m bench.cli table1 --scale gpu --out "$OUT/table1" -q && cat "$OUT/table1/data/table1.csv" ;;
+    grid) timeout 300 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
+            --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$OUT/grid_scaling.csv" && cat "$OUT/grid_scaling.csv" ;;
+    demo) timeout 580 python3 -m bench.cli demo --scale gpu --out "$OUT/demo" -q ;;
+    *) echo "unknown step $step" ;;
+  esac
+done
+stage "done"
