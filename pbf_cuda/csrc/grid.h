@@ -15,6 +15,7 @@ struct GridGeometry {
     float cell[3];
     float inv_cell[3];
     float domain[3];
+    float inv_domain[3];
     bool periodic[3];
     PBF_HD uint32_t num_cells() const { return uint32_t(dims[0]) * dims[1] * dims[2]; }
 };
@@ -23,6 +24,7 @@ inline GridGeometry make_grid_geometry(const float domain[3], const bool periodi
     GridGeometry g{};
     for (int a = 0; a < 3; ++a) {
         g.domain[a] = domain[a];
+        g.inv_domain[a] = 1.0f / domain[a];
         g.periodic[a] = periodic[a];
         if (periodic[a]) {
             int n = int(std::floor(domain[a] / h_max));
@@ -63,9 +65,9 @@ PBF_INLINE uint32_t cell_key(const GridGeometry& g, Vec3 p) {
 
 // x_i - x_j with the minimum-image convention on periodic axes.
 PBF_INLINE Vec3 min_image(const GridGeometry& g, Vec3 d) {
-    if (g.periodic[0]) d.x -= g.domain[0] * rintf(d.x / g.domain[0]);
-    if (g.periodic[1]) d.y -= g.domain[1] * rintf(d.y / g.domain[1]);
-    if (g.periodic[2]) d.z -= g.domain[2] * rintf(d.z / g.domain[2]);
+    if (g.periodic[0]) d.x -= g.domain[0] * rintf(d.x * g.inv_domain[0]);
+    if (g.periodic[1]) d.y -= g.domain[1] * rintf(d.y * g.inv_domain[1]);
+    if (g.periodic[2]) d.z -= g.domain[2] * rintf(d.z * g.inv_domain[2]);
     return d;
 }
 
@@ -89,24 +91,31 @@ struct CellRanges {
     const uint32_t* end;      // per cell: one past the last index (start == end: empty)
 };
 
-// Calls f(j, r_ij, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c
-// with |r_ij| < r_max (r_ij = q - x_j, minimum image).
+// Calls f(j, r, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c with
+// |r| < r_max, r = q - x_j (minimum image). With `frac` (q's fractional position inside cell c, per
+// axis), whole cells farther than r_max from q are skipped before any particle is read: about a
+// quarter of the 27 cells when the cell side equals r_max.
 template <class F>
 PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
-                                     float r_max, F&& f) {
+                                     float r_max, F&& f, const float* frac = nullptr) {
     const float r2max = r_max * r_max;
     for (int dz = -1; dz <= 1; ++dz) {
         int cz = c[2] + dz;
         if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
         else if (cz < 0 || cz >= g.dims[2]) continue;
+        float ez = 0.0f;
+        if (frac && dz) { ez = (dz < 0 ? frac[2] : 1.0f - frac[2]) * g.cell[2]; ez *= ez; if (ez >= r2max) continue; }
         for (int dy = -1; dy <= 1; ++dy) {
             int cy = c[1] + dy;
             if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
             else if (cy < 0 || cy >= g.dims[1]) continue;
+            float ey = ez;
+            if (frac && dy) { float e = (dy < 0 ? frac[1] : 1.0f - frac[1]) * g.cell[1]; ey += e * e; if (ey >= r2max) continue; }
             for (int dx = -1; dx <= 1; ++dx) {
                 int cx = c[0] + dx;
                 if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
                 else if (cx < 0 || cx >= g.dims[0]) continue;
+                if (frac && dx) { float e = (dx < 0 ? frac[0] : 1.0f - frac[0]) * g.cell[0]; if (ey + e * e >= r2max) continue; }
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 uint32_t b = set.start[cell], e = set.end[cell];
                 for (uint32_t j = b; j < e; ++j) {
@@ -124,8 +133,18 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
 // minimum image), including i itself when it belongs to the set (r2 = 0). r_max <= cell side.
 template <class F>
 PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max, F&& f) {
-    int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
-    for_each_in_block(g, set, c, xi, r_max, f);
+    int c[3];
+    float frac[3];
+    for (int a = 0; a < 3; ++a) {
+        float t = (component(xi, a) - g.origin[a]) * g.inv_cell[a];
+        float fl = floorf(t);
+        frac[a] = t - fl;
+        c[a] = cell_coord(g, component(xi, a), a);
+        // Outside the grid on a wall axis (clamped cell): no pruning along that axis.
+        if (!g.periodic[a] && (fl < 0.0f || fl >= float(g.dims[a]))) frac[a] = -1.0f;
+    }
+    bool prune = frac[0] >= 0.0f && frac[1] >= 0.0f && frac[2] >= 0.0f;
+    for_each_in_block(g, set, c, xi, r_max, f, prune ? frac : nullptr);
 }
 
 }  // namespace pbf

@@ -1,0 +1,130 @@
+"""Grid baseline scaling: ms per step at n^3 cells, on the CPU and on the GPU, through jax.
+
+    python -m bench.grid_scaling --sizes 32 64 128 --steps 20 --out reports/gpu/grid_scaling.csv
+
+Each (size, device, dtype) runs the scene (default ``growing``, its physics and dt) on an n x n x n grid
+from its initial state: compile (not timed), ``--warmup`` steps, then ``--steps`` timed steps of the fused,
+jitted step (one ``block_until_ready`` at the end).  Rows ``cells,step_ms,dtype,device,commit`` are
+appended to --out (the header is written when the file is new or empty): cells = n^3, device =
+the jax device's ``device_kind`` (e.g. ``cpu``, ``NVIDIA H100 80GB HBM3``), commit = ``git rev-parse
+--short HEAD`` (``unknown`` where git or the repository is missing; ``--commit`` overrides).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+COLUMNS = ("cells", "step_ms", "dtype", "device", "commit")
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def git_commit(cwd: str | Path = ROOT) -> str:
+    """Short commit hash of the checkout, or 'unknown' (no git binary, not a repository, any error)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=str(cwd), capture_output=True,
+                             text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    sha = out.stdout.strip()
+    return sha if out.returncode == 0 and sha else "unknown"
+
+
+def _platforms(requested):
+    import jax
+    have = []
+    for plat in ("cpu", "gpu"):
+        try:
+            if jax.devices(plat):
+                have.append(plat)
+        except RuntimeError:
+            pass
+    if requested in (None, "all"):
+        return have
+    wanted = [r.strip() for r in requested.split(",")]
+    missing = [w for w in wanted if w not in have]
+    if missing:
+        raise SystemExit(f"grid_scaling: no jax device for {', '.join(missing)} (available: {', '.join(have)})")
+    return wanted
+
+
+def measure(scene, n: int, platform: str, dtype: str, steps: int, warmup: int) -> dict:
+    import jax
+    from grid_baseline import GridSimulation
+    sim = GridSimulation(scene, resolution=(n, n, n), dtype=dtype, device=platform, check_every=0)
+    sim.warmup()
+    if warmup:
+        sim.step(warmup)
+    sim.reset_timings()
+    t0 = time.perf_counter()
+    sim.step(steps)
+    wall = (time.perf_counter() - t0) * 1e3 / steps
+    sim.check()
+    st = sim.stats()
+    ms = sim.timings()["step"]["mean_ms"]
+    return {"cells": n ** 3, "step_ms": f"{ms:.4f}", "dtype": dtype, "device": sim.device.device_kind, "wall_ms": wall,
+            "compile_s": sim.compile_seconds, "substeps": st["substeps"], "max_speed": st["max_speed"],
+            "platform": platform, "jax": jax.__version__}
+
+
+def check_header(path: Path) -> None:
+    """Refuse to append to a CSV with other columns."""
+    if path.exists() and path.stat().st_size > 0:
+        with open(path, newline="") as fh:
+            header = next(csv.reader(fh), None)
+        if header is not None and tuple(header) != COLUMNS:
+            raise SystemExit(f"grid_scaling: {path} has columns {header}, expected {','.join(COLUMNS)}")
+
+
+def append_rows(path: Path, rows) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    check_header(path)
+    new = not path.exists() or path.stat().st_size == 0
+    with open(path, "a", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(COLUMNS), extrasaction="ignore", lineterminator="\n")
+        if new:
+            w.writeheader()
+        for r in rows:
+            w.writerow(r)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.grid_scaling", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128], help="cells per axis (n^3 grids)")
+    ap.add_argument("--steps", type=int, default=20, help="timed steps per size")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed steps after compilation")
+    ap.add_argument("--scene", default="growing", help="scene name or path (default: growing)")
+    ap.add_argument("--devices", default="all", help="'all' (default), 'cpu', 'gpu' or 'cpu,gpu'")
+    ap.add_argument("--dtypes", nargs="+", default=None,
+                    help="float32 and/or float64 (default: float64 on the CPU, float32 on the GPU)")
+    ap.add_argument("--out", default="reports/gpu/grid_scaling.csv", help="CSV to append to")
+    ap.add_argument("--commit", default=None, help="commit to record (default: git rev-parse --short HEAD)")
+    args = ap.parse_args(argv)
+    if args.steps < 1:
+        ap.error("--steps must be >= 1")
+
+    from grid_baseline._pbf import load_scene
+    scene = load_scene(args.scene)
+    commit = args.commit or git_commit()
+    out = Path(args.out)
+    check_header(out)
+    rows = []
+    for platform in _platforms(args.devices):
+        dtypes = args.dtypes or (["float64"] if platform == "cpu" else ["float32"])
+        for dtype in dtypes:
+            for n in args.sizes:
+                r = measure(scene, n, platform, dtype, args.steps, args.warmup)
+                r["commit"] = commit
+                rows.append(r)
+                append_rows(out, [r])
+                print(f"{platform:4s} {dtype:8s} {n:4d}^3 = {r['cells']:9d} cells: {float(r['step_ms']):10.3f} ms/step "
+                      f"(compile {r['compile_s']:.1f} s, substeps {r['substeps']}, {r['device']})", flush=True)
+    print(f"wrote {len(rows)} rows to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

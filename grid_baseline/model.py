@@ -1,0 +1,372 @@
+"""The grid cloud model's step, as pure jax functions of (state, aux, params).
+
+Discretisation (Miyazaki et al. 2002 / Dobashi et al. 2008 style):
+
+* staggered MAC grid (layout in grid_baseline/projection.py); scalars at cell
+  centres: theta' (potential-temperature perturbation, K), vapor v and cloud w
+  (kg/kg);
+* advection: jax-cfd's flux-form van Leer scheme (``advect_van_leer``, the only
+  jax-cfd advection that supports walls), forward Euler, for the three scalars
+  and the three velocity components; sub-stepped so that the Courant sum
+  dt (|u|/dx + |v|/dy + |w|/dz) stays <= ``cfl_target`` (the particle solver
+  is Lagrangian and has no such limit, so the grid takes the scene's dt and
+  sub-steps advection inside it);
+* pressure projection: exact FFT/DCT Poisson solve (projection.py);
+* physics per cell in the particle solver's order: ground heating (eq. 5),
+  buoyancy and gravity (eq. 6, plus pbf.gravity), adiabatic cooling (eq. 7),
+  phase transition (eq. 9-10) with latent heat (eq. 11), integrated exactly
+  for the linearised system (stable for any alpha*dt); vorticity confinement
+  f = eps (N x omega) with eps = pbf.vorticity in m/s.
+
+Temperature: the grid advects theta' = T + Gamma_d y - theta0(y), the
+perturbation of the potential temperature theta = T + Gamma_d y from the
+environment's theta0(y) = T_ground + (Gamma_d - Gamma_env) y.  theta is
+conserved along a dry parcel, so advecting it *is* the adiabatic cooling of
+eq. 7 (DT/Dt = -Gamma_d u_y  <=>  D theta/Dt = 0): eq. 7 is therefore not
+applied a second time.  theta' obeys D theta'/Dt = -u_y (Gamma_d - Gamma_env),
+applied after advection.  T - T0(y) = theta' exactly, so buoyancy is computed
+from a small number even in float32, and a flux-form scheme's
+(divergence error) * (advected value) term acts on a few kelvin, not on 300 K
+(SPEC.md: float32 wall divergence would otherwise create spurious heating).
+Temperature smoothing (section 4.1) is a particle concept; the grid's own
+numerical diffusion plays that role and smoothing.kappa is ignored.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+import jax.numpy as jnp
+from jax import lax
+
+from . import compat
+from .projection import _lower_face, laplacian_eigenvalues, project, zero_wall_faces
+
+compat.apply()
+from jax_cfd.base import advection as cfd_advection  # noqa: E402
+from jax_cfd.base import boundaries as cfd_boundaries  # noqa: E402
+from jax_cfd.base import grids as cfd_grids  # noqa: E402
+
+__all__ = ["Params", "params_from_scene", "initial_state", "make_aux", "advect", "physics", "pressure_project",
+           "full_step", "phase_transition", "STATE_KEYS"]
+
+STATE_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
+UP = 1  # y is up
+
+
+@dataclasses.dataclass(frozen=True)
+class Params:
+    """Everything the step needs, as Python numbers (static under jit)."""
+    shape: tuple
+    size: tuple
+    periodic: tuple
+    dt: float
+    ground_temperature: float
+    lapse_rate: float
+    dry_lapse_rate: float
+    buoyancy: float
+    cloud_gravity: float
+    latent_heat: float
+    phase_rate: float
+    saturation_a: float
+    saturation_b: float
+    saturation_c: float
+    heating_rate: float
+    heating_depth: float
+    noise_frequency: float
+    noise_amplitude: float
+    noise_offset: tuple
+    initial_vapor_ratio: float
+    vapor_profile: str
+    vorticity: float
+    gravity: tuple
+    cfl_target: float = 0.8
+    max_substeps: int = 16
+
+    @property
+    def steps(self) -> tuple:
+        return tuple(L / n for L, n in zip(self.size, self.shape))
+
+    @property
+    def cell_volume(self) -> float:
+        return float(np.prod(self.steps))
+
+
+def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
+    a = scene.atmosphere
+    return Params(
+        shape=tuple(int(n) for n in shape), size=tuple(float(s) for s in scene.domain.size),
+        periodic=tuple(b == "periodic" for b in scene.domain.boundary), dt=float(scene.time.dt),
+        ground_temperature=a.ground_temperature, lapse_rate=a.lapse_rate, dry_lapse_rate=a.dry_lapse_rate,
+        buoyancy=a.buoyancy, cloud_gravity=a.cloud_gravity, latent_heat=a.latent_heat, phase_rate=a.phase_rate,
+        saturation_a=a.saturation_a, saturation_b=a.saturation_b, saturation_c=a.saturation_c,
+        heating_rate=a.heating_rate, heating_depth=a.heating_depth, noise_frequency=a.noise_frequency,
+        noise_amplitude=a.noise_amplitude, noise_offset=tuple(a.noise_offset),
+        initial_vapor_ratio=a.initial_vapor_ratio, vapor_profile=a.vapor_profile,
+        vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
+        cfl_target=float(cfl_target), max_substeps=int(max_substeps))
+
+
+# ---- geometry ---------------------------------------------------------------------------
+def cell_centers(p: Params):
+    """1-D host arrays (float64) of the cell-centre coordinates along x, y, z (m)."""
+    return tuple((np.arange(n) + 0.5) * h for n, h in zip(p.shape, p.steps))
+
+
+def face_coordinates(p: Params, axis: int):
+    """1-D host array of the face positions of velocity component `axis` along its own axis (offset 1)."""
+    n, h = p.shape[axis], p.steps[axis]
+    return (np.arange(n) + 1.0) * h
+
+
+def environment_temperature(p: Params, y):
+    return p.ground_temperature - p.lapse_rate * y
+
+
+def saturation(p: Params, T):
+    return p.saturation_a * jnp.exp(p.saturation_b / (T + p.saturation_c))
+
+
+def _bshape(axis, n):
+    sh = [1, 1, 1]
+    sh[axis] = n
+    return tuple(sh)
+
+
+# ---- initial state and static fields -----------------------------------------------------
+def make_aux(p: Params, dtype):
+    """Static per-run arrays: T0 at cell centres, the heating rate field (K/s), Poisson eigenvalues."""
+    from .noise import heating_pattern
+    xc, yc, zc = cell_centers(p)
+    t0 = environment_temperature(p, yc).reshape(_bshape(UP, p.shape[UP]))
+    X, Z = np.meshgrid(xc, zc, indexing="ij")
+    if p.heating_rate > 0.0:
+        pattern = np.asarray(heating_pattern(X, Z, p.noise_frequency, p.noise_amplitude, p.noise_offset,
+                                             dtype=jnp.float64 if dtype == jnp.float64 else jnp.float32),
+                             dtype=np.float64)
+    else:
+        pattern = np.zeros_like(X)
+    mask = (yc < p.heating_depth).astype(np.float64)
+    heat = p.heating_rate * pattern[:, None, :] * mask[None, :, None]
+    return {
+        "t0": jnp.asarray(t0, dtype=dtype),
+        "heat": jnp.asarray(heat, dtype=dtype),
+        "inv_eig": laplacian_eigenvalues(p.shape, p.steps, p.periodic, dtype),
+    }
+
+
+def initial_state(p: Params, dtype, wave=None):
+    """T = T0(y) (theta' = 0), vapor per atmosphere.vapor_profile, w = 0, velocity 0 or the [wave] mode."""
+    xc, yc, zc = cell_centers(p)
+    shape = p.shape
+    t0 = environment_temperature(p, yc)
+    t_ref = t0 if p.vapor_profile == "relative" else np.full_like(yc, p.ground_temperature)
+    vap = p.initial_vapor_ratio * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+    vapor = np.broadcast_to(vap.reshape(_bshape(UP, shape[UP])), shape)
+    zeros = np.zeros(shape)
+    ux, uy, uz = zeros, zeros, zeros
+    if wave is not None and wave.amplitude > 0.0:
+        ux, uy = wave_velocity(p, wave)
+    st = {"ux": ux, "uy": uy, "uz": uz, "theta": zeros, "vapor": vapor, "cloud": zeros}
+    return {k: jnp.asarray(np.ascontiguousarray(v), dtype=dtype) for k, v in st.items()}
+
+
+def wave_velocity(p: Params, wave):
+    """u = dpsi/dy, v = -dpsi/dx of psi = a sin(kx x) sin(ky y), peak |v| = amplitude, discretely
+    divergence-free (psi sampled at cell edges, velocities as its differences)."""
+    Lx, Ly = p.size[0], p.size[1]
+    kx = 2.0 * math.pi * wave.modes_x / Lx
+    ky = math.pi * wave.modes_y / Ly
+    a = wave.amplitude / kx
+    dx, dy = p.steps[0], p.steps[1]
+    nx, ny, nz = p.shape
+    xe = np.arange(nx + 1) * dx  # cell edges
+    ye = np.arange(ny + 1) * dy
+    psi = a * np.sin(kx * xe)[:, None] * np.sin(ky * ye)[None, :]   # (nx+1, ny+1) at (x edge, y edge)
+    # ux at (x face i+1, y centre j): (psi[i+1, j+1] - psi[i+1, j]) / dy
+    ux2 = (psi[1:, 1:] - psi[1:, :-1]) / dy
+    # uy at (x centre i, y face j+1): -(psi[i+1, j+1] - psi[i, j+1]) / dx
+    uy2 = -(psi[1:, 1:] - psi[:-1, 1:]) / dx
+    ux = np.repeat(ux2[:, :, None], nz, axis=2)
+    uy = np.repeat(uy2[:, :, None], nz, axis=2)
+    return ux, uy
+
+
+# ---- helpers ------------------------------------------------------------------------------
+def _to_center(u, axis, periodic):
+    return 0.5 * (u + _lower_face(u, axis, periodic))
+
+
+def _to_faces(f, axis, periodic):
+    """Cell-centred f averaged onto the upper faces along `axis` (0 on a stored wall face)."""
+    if periodic:
+        return 0.5 * (f + jnp.roll(f, -1, axis=axis))
+    n = f.shape[axis]
+    upper = jnp.concatenate([lax.slice_in_dim(f, 1, n, axis=axis), lax.slice_in_dim(f, n - 1, n, axis=axis)],
+                            axis=axis)
+    return zero_wall_faces(0.5 * (f + upper), axis, False)
+
+
+def _ddx(f, axis, h, periodic):
+    """Central difference of a cell-centred field; at a wall the ghost cell repeats the edge value."""
+    if periodic:
+        return (jnp.roll(f, -1, axis=axis) - jnp.roll(f, 1, axis=axis)) / (2.0 * h)
+    n = f.shape[axis]
+    up = jnp.concatenate([lax.slice_in_dim(f, 1, n, axis=axis), lax.slice_in_dim(f, n - 1, n, axis=axis)], axis=axis)
+    dn = jnp.concatenate([lax.slice_in_dim(f, 0, 1, axis=axis), lax.slice_in_dim(f, 0, n - 1, axis=axis)], axis=axis)
+    return (up - dn) / (2.0 * h)
+
+
+class _Cfd:
+    """jax-cfd grid and boundary conditions matching Params (built once per model)."""
+
+    def __init__(self, p: Params):
+        P = cfd_boundaries.BCType.PERIODIC
+        D = cfd_boundaries.BCType.DIRICHLET
+        N = cfd_boundaries.BCType.NEUMANN
+        self.grid = cfd_grids.Grid(p.shape, domain=tuple((0.0, L) for L in p.size))
+        self.vel_bc = cfd_boundaries.HomogeneousBoundaryConditions(
+            tuple((P, P) if per else (D, D) for per in p.periodic))
+        self.scalar_bc = cfd_boundaries.HomogeneousBoundaryConditions(
+            tuple((P, P) if per else (N, N) for per in p.periodic))
+        self.faces = self.grid.cell_faces
+        self.center = self.grid.cell_center
+
+    def velocity(self, vel):
+        return tuple(cfd_grids.GridVariable(cfd_grids.GridArray(u, o, self.grid), self.vel_bc)
+                     for u, o in zip(vel, self.faces))
+
+    def scalar(self, c):
+        return cfd_grids.GridVariable(cfd_grids.GridArray(c, self.center, self.grid), self.scalar_bc)
+
+
+_CFD_CACHE: dict = {}
+
+
+def _cfd(p: Params) -> _Cfd:
+    key = (p.shape, p.size, p.periodic)
+    if key not in _CFD_CACHE:
+        _CFD_CACHE[key] = _Cfd(p)
+    return _CFD_CACHE[key]
+
+
+def courant_sum(vel, p: Params, dt):
+    """dt * max over cells of sum_a |u_a| / h_a, with each component's largest adjacent face value."""
+    total = None
+    for a, (u, h, per) in enumerate(zip(vel, p.steps, p.periodic)):
+        c = jnp.maximum(jnp.abs(u), jnp.abs(_lower_face(u, a, per))) / h
+        total = c if total is None else total + c
+    return dt * jnp.max(total)
+
+
+# ---- phases ---------------------------------------------------------------------------------
+def advect(state, aux, p: Params):
+    """Flux-form van Leer advection of theta', v, w and the velocity (sub-stepped), then the
+    theta' source -u_y (Gamma_d - Gamma_env) (the adiabatic cooling of eq. 7 relative to the
+    environment).  Returns (state, number of sub-steps)."""
+    cfd = _cfd(p)
+    dt = p.dt
+    vel0 = (state["ux"], state["uy"], state["uz"])
+    cfl = courant_sum(vel0, p, dt)
+    nsub = jnp.clip(jnp.ceil(cfl / p.cfl_target), 1, p.max_substeps).astype(jnp.int32)
+    dts = (dt / nsub).astype(state["theta"].dtype)
+    V = cfd.velocity(vel0)
+
+    def body(_, fields):
+        theta, vapor, cloud, ux, uy, uz = fields
+        out = []
+        for c in (theta, vapor, cloud):
+            out.append(c + dts * cfd_advection.advect_van_leer(cfd.scalar(c), V, dts).data)
+        for a, (u, var) in enumerate(zip((ux, uy, uz), cfd.velocity((ux, uy, uz)))):
+            un = u + dts * cfd_advection.advect_van_leer(var, V, dts).data
+            out.append(zero_wall_faces(un, a, p.periodic[a]))
+        return tuple(out)
+
+    fields = (state["theta"], state["vapor"], state["cloud"], *vel0)
+    theta, vapor, cloud, ux, uy, uz = lax.fori_loop(0, nsub, body, fields)
+    uy_c = _to_center(vel0[UP], UP, p.periodic[UP])
+    theta = theta - dt * (p.dry_lapse_rate - p.lapse_rate) * uy_c
+    return {"ux": ux, "uy": uy, "uz": uz, "theta": theta, "vapor": vapor, "cloud": cloud}, nsub
+
+
+def phase_transition(p: Params, T, vapor, cloud, dt):
+    """Eq. 9-11 integrated exactly for the linearised coupled system; returns (vapor, cloud, dT).
+
+    q = v + w; s = A exp(B/(T+C)); gamma = min(s, q); D = v - gamma.
+    s < q: s' = s (-B)/(T+C)^2, k = alpha (1 + Q s'), dw = D (1 - exp(-k dt)) / (1 + Q s');
+    else (all cloud evaporates toward q): dw = -w (1 - exp(-alpha dt)).
+    dw = max(dw, -w); w += dw; v = q - w; T += Q dw.
+    """
+    Q, alpha, B, C = p.latent_heat, p.phase_rate, p.saturation_b, p.saturation_c
+    q = vapor + cloud
+    s = saturation(p, T)
+    saturated = s < q
+    sprime = s * (-B) / ((T + C) * (T + C))
+    denom = 1.0 + Q * sprime
+    k = alpha * denom
+    dw_sat = (vapor - s) * (-jnp.expm1(-k * dt)) / denom
+    dw_dry = -cloud * (-jnp.expm1(-alpha * dt))
+    dw = jnp.where(saturated, dw_sat, dw_dry)
+    dw = jnp.maximum(dw, -cloud)
+    cloud = cloud + dw
+    vapor = q - cloud
+    return vapor, cloud, Q * dw
+
+
+def vorticity_force(vel, p: Params):
+    """Vorticity confinement f = eps (N x omega) at cell centres (m/s^2), eps = pbf.vorticity (m/s)."""
+    steps, per = p.steps, p.periodic
+    uc = [_to_center(u, a, per[a]) for a, u in enumerate(vel)]
+    d = lambda f, a: _ddx(f, a, steps[a], per[a])  # noqa: E731
+    wx = d(uc[2], 1) - d(uc[1], 2)
+    wy = d(uc[0], 2) - d(uc[2], 0)
+    wz = d(uc[1], 0) - d(uc[0], 1)
+    mag = jnp.sqrt(wx * wx + wy * wy + wz * wz)
+    gx, gy, gz = d(mag, 0), d(mag, 1), d(mag, 2)
+    gnorm = jnp.sqrt(gx * gx + gy * gy + gz * gz)
+    inv = jnp.where(gnorm > 0.0, 1.0 / jnp.where(gnorm > 0.0, gnorm, 1.0), 0.0)
+    nx, ny, nz = gx * inv, gy * inv, gz * inv
+    eps = p.vorticity
+    return (eps * (ny * wz - nz * wy), eps * (nz * wx - nx * wz), eps * (nx * wy - ny * wx))
+
+
+def physics(state, aux, p: Params):
+    """Vorticity confinement, then cloud dynamics in the particle solver's order (eq. 5, 6, 7, 9-11)."""
+    dt = p.dt
+    per = p.periodic
+    vel = [state["ux"], state["uy"], state["uz"]]
+    if p.vorticity > 0.0:
+        f = vorticity_force(vel, p)
+        vel = [u + dt * _to_faces(fa, a, per[a]) for a, (u, fa) in enumerate(zip(vel, f))]
+    theta, vapor, cloud = state["theta"], state["vapor"], state["cloud"]
+    # eq. 5: ground heating (aux["heat"] = S_e * max(0, 1 + a * noise) below heating_depth, else 0)
+    if p.heating_rate > 0.0:
+        theta = theta + dt * aux["heat"]
+    # eq. 6: buoyancy - cloud weight (at cell centres, averaged onto the vertical faces) + pbf.gravity
+    t0 = aux["t0"]
+    b = p.buoyancy * theta / t0 - p.cloud_gravity * cloud
+    vel[UP] = vel[UP] + dt * _to_faces(b, UP, per[UP])
+    for a, g in enumerate(p.gravity):
+        if g != 0.0:
+            vel[a] = zero_wall_faces(vel[a] + dt * g, a, per[a])
+    # eq. 7: adiabatic cooling is the conservation of theta = T + Gamma_d y in advect() (nothing to add here).
+    # eq. 9-11: phase transition and latent heat
+    T = t0 + theta
+    vapor, cloud, dT = phase_transition(p, T, vapor, cloud, dt)
+    theta = theta + dT
+    return {"ux": vel[0], "uy": vel[1], "uz": vel[2], "theta": theta, "vapor": vapor, "cloud": cloud}
+
+
+def pressure_project(state, aux, p: Params):
+    vel, _ = project((state["ux"], state["uy"], state["uz"]), p.steps, p.periodic, aux["inv_eig"])
+    return {**state, "ux": vel[0], "uy": vel[1], "uz": vel[2]}
+
+
+def full_step(state, aux, p: Params):
+    """advect -> physics -> project. Returns (state, nsub)."""
+    state, nsub = advect(state, aux, p)
+    state = physics(state, aux, p)
+    state = pressure_project(state, aux, p)
+    return state, nsub
