@@ -386,9 +386,13 @@ def render_shape_energy(state: Mapping, scene, out_png, window_size: Sequence[in
     split candidates (E > alpha), low E merge candidates (E < beta).
     """
     a = scene.adaptive
+    _need(state, "cloud")
+    w_max = float(np.max(state["cloud"])) if len(state["cloud"]) else 0.0
+    clear = "" if w_max > CLOUD_THRESHOLD else f" (no cloud in this state: max w = {w_max:.2g})"
     panels = [(state, "shape_energy", f"(a) shape energy E, k_p = {a.k_p:g}, k_c = {a.k_c:g} "
-                                      f"(split E > {a.split_threshold:g}, merge E < {a.merge_threshold:g})", None, True),
-              (state, "cloud_density", "(b) cloud density w used directly", None, True)]
+                                      f"(split E > {a.split_threshold:g}, merge E < {a.merge_threshold:g}){clear}",
+               None, True),
+              (state, "cloud_density", f"(b) cloud density w used directly{clear}", None, True)]
     return _side_by_side(panels, scene, out_png, window_size, CLOUD_THRESHOLD, point_size, fade=True)
 
 

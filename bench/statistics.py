@@ -158,7 +158,9 @@ def deposit(positions, masses, kernel_radius, fields: Mapping[str, np.ndarray], 
     conserved to rounding: sum_c density f V = sum_j m_j f_j.  Near a wall the
     footprint is cut and renormalised (nothing leaks out of the box).  A particle whose
     kernel reaches no cell centre (h smaller than half a cell) goes wholly into the cell
-    that holds it (clamped into the box on wall axes).
+    that holds it (clamped into the box on wall axes).  Within one kernel radius of a
+    wall the Shepard average of a field with a vertical gradient g is biased by up to
+    g h (the footprint is one-sided there).
     """
     shape = _shape3(shape)
     dx = _vector3("cell_size", cell_size, positive=True)

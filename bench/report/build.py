@@ -159,7 +159,13 @@ def _missing(section: Section, what: str, key: str, out: Path) -> None:
     section.add("note", f"{what}: not run in this study.", level="missing", command=_command(key, out))
 
 
+HIDDEN_COLUMNS = ("run_dir",)
+"""Columns never shown in tables (machine-local paths)."""
+
+
 def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) -> str:
+    df = df.drop(columns=[c for c in HIDDEN_COLUMNS if c in df.columns])
+
     def fmt(v):
         if isinstance(v, (float, np.floating)):
             if math.isnan(v):
