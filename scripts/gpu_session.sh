@@ -26,7 +26,7 @@ for step in "$@"; do
   case "$step" in
     scaling) timeout 240 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 --steps 20 --quiet \
                --out "$OUT/pbf_scaling.csv" && cat "$OUT/pbf_scaling.csv" ;;
-    table1) timeout 400 python3 -m bench.cli table1 --scale gpu --out "$OUT/table1" -q && cat "$OUT/table1/data/table1.csv" ;;
+    table1) timeout 400 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$OUT/table1" -q && cat "$OUT/table1/data/table1.csv" ;;
     grid) timeout 300 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$OUT/grid_scaling.csv" && cat "$OUT/grid_scaling.csv" ;;
     demo) timeout 580 python3 -m bench.cli demo --scale gpu --out "$OUT/demo" -q ;;

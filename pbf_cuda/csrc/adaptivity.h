@@ -209,7 +209,6 @@ struct MergePass {
             if (best == 0xffffffffu) continue;
             Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
             float r_min = ap.min_distance * radii.h[l - 1];
-            float r2_min = r_min * r_min;
             bool clear = true;
             for_each_in_block(grid, fluid, c, mid, r_min, [&](uint32_t k, Vec3, float) {
                 if (k == i || k == best || (flags[k] & kDead)) return;

@@ -628,7 +628,6 @@ private:
                                          thermo ? raw(vapor_) : nullptr, thermo ? raw(cloud_) : nullptr});
         }
         next_id_ += uint32_t(splits);
-        std::size_t n_before = n_;
         n_ += splits;
         clock_.end(kPhaseSplitting);
 
@@ -651,7 +650,6 @@ private:
         last_stats_.splits += (long long)splits;
         last_stats_.merges += (long long)merges;
         last_stats_.split_capacity_rejects += (long long)(winners - splits);
-        (void)n_before;
     }
 
     // ---- stability checks ----
