@@ -132,6 +132,7 @@ def full_report(tmp_path_factory):
 
 def test_report_builds_with_every_section_and_no_external_reference(full_report):
     out, page = full_report
+    assert (out / "index.html").stat().st_mode & 0o777 == 0o644
     parser = _Collector()
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]

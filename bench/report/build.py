@@ -659,6 +659,7 @@ def build_report(out_dir) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=".index.html.", dir=out)
     with os.fdopen(fd, "w", encoding="utf-8") as fh:
         fh.write(page)
+    os.chmod(tmp, 0o644)  # mkstemp makes 0600; the report is meant to be read by anyone
     os.replace(tmp, target)
     return target
 
