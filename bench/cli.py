@@ -64,10 +64,6 @@ QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars 
 
 
 # ---- helpers ------------------------------------------------------------------------------------
-def _usage_error(message: str) -> click.UsageError:
-    return click.UsageError(message)
-
-
 def _load_scene(name: str, overrides: dict | None = None):
     """A scene by name or path; unknown names list the shipped scenes (exit code 2)."""
     from pbf_cuda.scene import SceneError, list_scenes, load_scene
@@ -78,7 +74,7 @@ def _load_scene(name: str, overrides: dict | None = None):
     try:
         return load_scene(name, **(overrides or {}))
     except SceneError as exc:
-        raise _usage_error(str(exc)) from None
+        raise click.UsageError(str(exc)) from None
 
 
 def _parse_overrides(items: list[str] | None) -> dict:
@@ -117,10 +113,6 @@ def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Ba
     from bench.studies.scales import resolve_scale
     return StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
                         backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
-
-
-def _done(message: str, quiet: bool = False) -> None:
-    typer.echo(message)
 
 
 # ---- commands -------------------------------------------------------------------------------------
@@ -165,7 +157,7 @@ def run(
         try:
             scene_obj = scene_obj.with_particle_count(particles)
         except SceneError as exc:
-            raise _usage_error(f"--particles {particles}: {exc}") from None
+            raise click.UsageError(f"--particles {particles}: {exc}") from None
     if solver is Solver.grid and not scene_obj.thermodynamics:
         raise typer.BadParameter(f"scene '{scene}' has no [atmosphere]; the grid baseline runs cloud scenes only",
                                  param_hint="'SCENE'")
@@ -174,7 +166,7 @@ def run(
                             snapshot_every=snapshot_every, cells_per_spacing=cells_per_spacing,
                             record_steps=(not scene_obj.thermodynamics) if record_steps is None else record_steps)
     except ValueError as exc:
-        raise _usage_error(str(exc)) from None
+        raise click.UsageError(str(exc)) from None
     result = runs.execute(spec, runs_root, quiet=quiet)
     timings = result.timings()
     typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
@@ -194,11 +186,15 @@ def run(
 def table1(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
            backend: BackendOpt = Backend.auto, quiet: QuietOpt = False) -> None:
     """Table 1: per-phase ms of the four examples beside the paper's (OUT/data/table1.csv)."""
-    from bench.studies.table1 import TABLE1_COLUMNS, run_table1
+    from bench.studies.table1 import run_table1
     with _context(out, runs_root, scale, backend, None, None, quiet) as ctx:
         frame = run_table1(ctx)
-    typer.echo(frame[list(TABLE1_COLUMNS)].to_string(index=False))
-    _done(f"wrote {ctx.data / 'table1.csv'}")
+    shown = ["example", "mode", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
+             "merging_ms", "total_ms", "paper_max_particles", "paper_total_ms", "speedup_vs_paper", "stable"]
+    typer.echo(frame[shown].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    typer.echo(f"device: {frame['device'].iloc[0]}; scale: {ctx.scale.environment_label}; "
+               f"paper: GeForce GTX 780 Ti")
+    typer.echo(f"wrote {ctx.data / 'table1.csv'}")
 
 
 @app.command()
@@ -216,9 +212,9 @@ def compare(
         try:
             frames = run_compare(ctx, scene, seeds)
         except ValueError as exc:
-            raise _usage_error(str(exc)) from None
+            raise click.UsageError(str(exc)) from None
     typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
-    _done(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
+    typer.echo(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
 
 
 @app.command()
@@ -233,7 +229,7 @@ def sweep(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scale
     typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
                .to_string(index=False))
     typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
-    _done(f"wrote {ctx.data / 'sweep.csv'}")
+    typer.echo(f"wrote {ctx.data / 'sweep.csv'}")
 
 
 @app.command()
@@ -248,7 +244,7 @@ def stress(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scal
     typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
     summary = json.loads((ctx.data / "stress_summary.json").read_text())
     typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s")
-    _done(f"wrote {ctx.data / 'stress.csv'}")
+    typer.echo(f"wrote {ctx.data / 'stress.csv'}")
 
 
 @app.command()
@@ -270,7 +266,7 @@ def scaling(
         frames = run_scaling(ctx)
     typer.echo(frames["pbf_scaling"][list(PBF_COLUMNS)].to_string(index=False))
     typer.echo(frames["grid_scaling"][list(GRID_COLUMNS)].to_string(index=False))
-    _done(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
+    typer.echo(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
 
 
 @app.command()

@@ -182,3 +182,24 @@ def test_dask_workers_run_missing_specs_and_cached_ones_stay_home(tmp_path):
     again = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", quiet=True)
     assert [r.path for r in again.run_parallel(specs, "test")] == [r.path for r in results]
     assert again._client is None                          # everything cached: no cluster started
+
+
+def test_table1_row_is_ms_per_step_without_double_counting():
+    from types import SimpleNamespace
+    from bench.studies.table1 import ROWS, TABLE1_COLUMNS, table1_row
+    timings = {"pbf": {"total_ms": 100.0, "count": 10}, "neighbors": {"total_ms": 30.0, "count": 10},
+               "solver": {"total_ms": 60.0, "count": 10}, "smoothing": {"total_ms": 20.0, "count": 10},
+               "cloud_dynamics": {"total_ms": 4.0, "count": 10}, "splitting": {"total_ms": 5.0, "count": 2}}
+    result = SimpleNamespace(timings=lambda: timings, max_particles=1234, device="dev", backend="cpu", stable=True,
+                             reason=None, path="runs/x")
+    spec = SimpleNamespace(total_steps=12, scene=load_scene("growing_adaptive"))
+    ctx = SimpleNamespace(commit="abc", scale=SCALES["smoke"])
+    row = table1_row(ROWS[1], spec, result, ctx)
+    assert list(row)[:len(TABLE1_COLUMNS)] == list(TABLE1_COLUMNS)
+    assert (row["pbf_ms"], row["smoothing_ms"], row["cloud_dynamics_ms"]) == (10.0, 2.0, 0.4)
+    assert row["splitting_ms"] == 0.5 and row["merging_ms"] is None      # split on 2 of 10 steps; no merge timer
+    assert row["total_ms"] == pytest.approx(12.9)                        # neighbors, solver are inside pbf
+    assert (row["example"], row["figure"], row["mode"], row["max_particles"]) == ("growing", "5b", "adaptive", 1234)
+    paper_total = 628.78 + 64.55 + 12.50 + 6.10 + 23.71                  # the paper's row 5b
+    assert row["paper_total_ms"] == pytest.approx(paper_total) and row["paper_max_particles"] == 540000
+    assert row["speedup_vs_paper"] == pytest.approx(paper_total / 12.9)

@@ -6,14 +6,18 @@ growing, growing_adaptive, cycling, cycling_adaptive.  Columns are the paper's p
 sub-timers inside it and are not added again), ``smoothing``, ``cloud_dynamics``, ``splitting``,
 ``merging``; ``total_ms`` is the sum of the phases that ran (an empty cell: the phase did not
 run, e.g. no split/merge without adaptivity).  ``max_particles`` is the largest particle count
-seen during the run.  Timings are means over the steps after a short warm-up.
+seen during the run.  Timings are ms per step: each phase's total time over the steps after a short
+warm-up, divided by the number of those steps.
 
 At scale ``gpu`` the scenes run at the paper's particle counts; at ``cpu``/``smoke`` they are
 scaled down (see bench.studies.scales) and the ``scale`` column says so.  Output:
 OUT/data/table1.csv (columns TABLE1_COLUMNS, then backend, scale, steps, initial_particles,
-stable, reason, run_dir).
+stable, reason, paper_max_particles, paper_total_ms, speedup_vs_paper = paper_total_ms / total_ms
+(the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv), run_dir).
 """
 from __future__ import annotations
+
+from pathlib import Path
 
 import pandas as pd
 
@@ -31,6 +35,14 @@ ROWS = (  # example, figure, mode, scene
 PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
 TABLE1_COLUMNS = ("example", "figure", "mode", "max_particles", *(f"{p}_ms" for p in PHASES), "total_ms",
                   "device", "commit")
+PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
+
+
+def paper_rows() -> dict[tuple[str, str], dict]:
+    """(example, mode) -> the paper's row, with its total_ms (sum of the phases it lists)."""
+    paper = pd.read_csv(PAPER_TABLE1)
+    paper["total_ms"] = paper[[f"{p}_ms" for p in PHASES]].sum(axis=1, skipna=True)
+    return {(r["example"], r["mode"]): r for r in paper.to_dict("records")}
 
 
 def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
@@ -47,14 +59,19 @@ def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
 def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: StudyContext) -> dict:
     example, figure, mode, _ = meta
     timings = result.timings()
+    steps = timings["pbf"]["count"] if "pbf" in timings else 0     # pbf runs every step: the timed steps
     row = {"example": example, "figure": figure, "mode": mode, "max_particles": result.max_particles}
-    ran = [timings[p]["mean_ms"] for p in PHASES if p in timings]
-    for phase in PHASES:
-        row[f"{phase}_ms"] = timings[phase]["mean_ms"] if phase in timings else None
+    for phase in PHASES:   # ms per step: a phase that ran on some steps only is averaged over all of them
+        row[f"{phase}_ms"] = timings[phase]["total_ms"] / steps if phase in timings and steps else None
+    ran = [row[f"{p}_ms"] for p in PHASES if row[f"{p}_ms"] is not None]
     row["total_ms"] = sum(ran) if ran else None
+    paper = paper_rows().get((example, mode), {})
     row.update(device=result.device, commit=ctx.commit, backend=result.backend, scale=ctx.scale.environment_label,
                steps=spec.total_steps, initial_particles=spec.scene.estimated_particles(), stable=result.stable,
-               reason=result.reason, run_dir=str(result.path))
+               reason=result.reason, paper_max_particles=paper.get("max_particles"),
+               paper_total_ms=paper.get("total_ms"),
+               speedup_vs_paper=paper["total_ms"] / row["total_ms"] if paper and row["total_ms"] else None,
+               run_dir=str(result.path))
     return row
 
 
