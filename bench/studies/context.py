@@ -59,7 +59,8 @@ def local_cluster(n_workers: int, gpus: list[str] | None = None):
     if gpus:
         threads = max(1, cores // len(gpus))
         workers = {f"gpu-{g}": {"cls": Nanny, "options": {
-            "nthreads": 1, "env": {**_worker_env(threads), "CUDA_VISIBLE_DEVICES": g}}} for g in gpus}
+            "nthreads": 1, "silence_logs": logging.CRITICAL,
+            "env": {**_worker_env(threads), "CUDA_VISIBLE_DEVICES": g}}} for g in gpus}
         return SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": None}},
                            silence_logs=logging.CRITICAL)
     threads = max(1, cores // n_workers)
