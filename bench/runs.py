@@ -604,8 +604,7 @@ class _Run:
     # -- progress bookkeeping ------------------------------------------------------------------
     def _resume(self):
         """(sim, progress) from checkpoint.npz + progress.json when they agree, else (None, fresh)."""
-        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0,
-                 "segments": 0}
+        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0}
         ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
         if not (self.adapter.can_checkpoint and ckpt.exists() and prog.exists()):
             return None, fresh
@@ -719,8 +718,7 @@ class _Run:
                 if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and s < total:
                     self._checkpoint(sim, {"step": s, "timings": _merge_timings(base_timings, sim.timings()),
                                            "step_wall_s": step_wall, "timed_wall_s": timed_wall,
-                                           "max_particles": max_particles,
-                                           "segments": progress["segments"] + 1})
+                                           "max_particles": max_particles})
                 bar.update(n)
                 if self.on_step is not None:
                     self.on_step(s)
