@@ -121,14 +121,15 @@ def test_plain_fluid_reports_only_phases_that_ran():
     assert "temperature" not in sim.state()
 
 
-def test_nan_is_caught_at_its_step_with_the_particle():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_nan_is_caught_at_its_step_with_the_particle(backend):
     scene = periodic_scene()
-    sim = Simulation(scene, backend="cpu")
+    sim = Simulation(scene, backend=backend)
     sim.step(2)
     st = sim.state()
     st["velocity"][7] = np.nan
     bad_id = int(st["id"][7])
-    broken = Simulation.from_arrays(scene, st, backend="cpu")
+    broken = Simulation.from_arrays(scene, st, backend=backend)
     with pytest.raises(InstabilityError) as err:
         broken.step(3)
     assert err.value.step == 1

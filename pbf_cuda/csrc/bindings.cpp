@@ -229,7 +229,14 @@ NB_MODULE(_core, m) {
              "cloud"_a, "mass"_a, "id"_a)
         .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
-        .def("step", [](PySolver& s, int n) { s.impl_->step(n); }, "n"_a, nb::call_guard<nb::gil_scoped_release>())
+        .def("step", [](PySolver& s, int n) {
+            std::string failure;
+            {
+                nb::gil_scoped_release release;
+                failure = s.impl_->step(n);
+            }
+            if (!failure.empty()) throw std::runtime_error(failure);
+        }, "n"_a)
         .def("adapt_now", [](PySolver& s) { s.impl_->adapt_now(); }, nb::call_guard<nb::gil_scoped_release>())
         .def("size", [](PySolver& s) { return s.impl_->size(); })
         .def("step_count", [](PySolver& s) { return s.impl_->step_count(); })

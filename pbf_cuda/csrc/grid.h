@@ -45,7 +45,9 @@ inline GridGeometry make_grid_geometry(const float domain[3], const bool periodi
 }
 
 PBF_INLINE int cell_coord(const GridGeometry& g, float x, int a) {
-    int c = int(floorf((x - g.origin[a]) * g.inv_cell[a]));
+    float t = (x - g.origin[a]) * g.inv_cell[a];
+    if (!(t > -1e9f && t < 1e9f)) t = 0.0f;  // NaN / Inf: any valid cell (the step's check reports it)
+    int c = int(floorf(t));
     if (g.periodic[a]) {
         c %= g.dims[a];
         if (c < 0) c += g.dims[a];
@@ -92,30 +94,43 @@ struct CellRanges {
 };
 
 // Calls f(j, r, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c with
-// |r| < r_max, r = q - x_j (minimum image). With `frac` (q's fractional position inside cell c, per
-// axis), whole cells farther than r_max from q are skipped before any particle is read: about a
-// quarter of the 27 cells when the cell side equals r_max.
+// |r| < r_max, r = q - x_j (minimum image). Whole cells whose box lies r_max or farther from q are
+// skipped before any of their particles is read (about a quarter of the block when the cell side equals
+// r_max, most of it for a small r_max). Only cells of the block are visited, wherever q lies.
 template <class F>
 PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
-                                     float r_max, F&& f, const float* frac = nullptr) {
+                                     float r_max, F&& f) {
     const float r2max = r_max * r_max;
+    // q relative to the lower corner of cell c, in cells (minimum image on periodic axes).
+    float rel[3];
+    for (int a = 0; a < 3; ++a) {
+        float t = (component(q, a) - g.origin[a]) * g.inv_cell[a] - float(c[a]);
+        if (g.periodic[a]) t -= float(g.dims[a]) * rintf(t / float(g.dims[a]));
+        rel[a] = t;
+    }
+    // Squared distance (m^2) from q to the slab of cells at offset d along axis a.
+    auto gap2 = [&](int a, int d) {
+        float lo = float(d) - rel[a], hi = rel[a] - float(d + 1);
+        float e = fmaxf(0.0f, fmaxf(lo, hi)) * g.cell[a];
+        return e * e;
+    };
     for (int dz = -1; dz <= 1; ++dz) {
         int cz = c[2] + dz;
         if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
         else if (cz < 0 || cz >= g.dims[2]) continue;
-        float ez = 0.0f;
-        if (frac && dz) { ez = (dz < 0 ? frac[2] : 1.0f - frac[2]) * g.cell[2]; ez *= ez; if (ez >= r2max) continue; }
+        float ez = gap2(2, dz);
+        if (ez >= r2max) continue;
         for (int dy = -1; dy <= 1; ++dy) {
             int cy = c[1] + dy;
             if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
             else if (cy < 0 || cy >= g.dims[1]) continue;
-            float ey = ez;
-            if (frac && dy) { float e = (dy < 0 ? frac[1] : 1.0f - frac[1]) * g.cell[1]; ey += e * e; if (ey >= r2max) continue; }
+            float ey = ez + gap2(1, dy);
+            if (ey >= r2max) continue;
             for (int dx = -1; dx <= 1; ++dx) {
                 int cx = c[0] + dx;
                 if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
                 else if (cx < 0 || cx >= g.dims[0]) continue;
-                if (frac && dx) { float e = (dx < 0 ? frac[0] : 1.0f - frac[0]) * g.cell[0]; if (ey + e * e >= r2max) continue; }
+                if (ey + gap2(0, dx) >= r2max) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 uint32_t b = set.start[cell], e = set.end[cell];
                 for (uint32_t j = b; j < e; ++j) {
@@ -133,18 +148,8 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
 // minimum image), including i itself when it belongs to the set (r2 = 0). r_max <= cell side.
 template <class F>
 PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max, F&& f) {
-    int c[3];
-    float frac[3];
-    for (int a = 0; a < 3; ++a) {
-        float t = (component(xi, a) - g.origin[a]) * g.inv_cell[a];
-        float fl = floorf(t);
-        frac[a] = t - fl;
-        c[a] = cell_coord(g, component(xi, a), a);
-        // Outside the grid on a wall axis (clamped cell): no pruning along that axis.
-        if (!g.periodic[a] && (fl < 0.0f || fl >= float(g.dims[a]))) frac[a] = -1.0f;
-    }
-    bool prune = frac[0] >= 0.0f && frac[1] >= 0.0f && frac[2] >= 0.0f;
-    for_each_in_block(g, set, c, xi, r_max, f, prune ? frac : nullptr);
+    int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
+    for_each_in_block(g, set, c, xi, r_max, f);
 }
 
 }  // namespace pbf

@@ -42,10 +42,6 @@ struct StepStats {
     long long split_last = 0, merge_last = 0, capacity_rejects_last = 0;  // in the last step
 };
 
-// Thrown by step(): "unstable|<step>|<last good step>|<reason>|<id,id,...>".
-struct InstabilityError : std::runtime_error {
-    using std::runtime_error::runtime_error;
-};
 
 enum class ArrayKind { Float, Float4, UInt };
 
@@ -63,7 +59,10 @@ public:
                            const float* vapor, const float* cloud, const float* mass, const uint32_t* id) = 0;
     virtual void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) = 0;
     virtual void set_clock(long long step, double time, uint32_t next_id) = 0;
-    virtual void step(int n) = 0;
+    // Advances up to n steps; stops at the first step that fails its check and returns
+    // "unstable|<step>|<last good step>|<reason>|<id,id,...>" (empty string: all n steps passed).
+    // Errors travel as values, never as exceptions, across the backend boundary.
+    virtual std::string step(int n) = 0;
     // Runs only the split/merge phase on the current state (for tests and studies of section 5.2).
     virtual void adapt_now() = 0;
     virtual std::size_t size() const = 0;

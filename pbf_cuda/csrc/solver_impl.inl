@@ -376,12 +376,20 @@ public:
     }
 
     // -- stepping ----------------------------------------------------------------------------
-    void step(int n) override {
+    std::string step(int n) override {
         for (int s = 0; s < n; ++s) {
             if (p_.adaptive) do_step<true>(); else do_step<false>();
             clock_.collect(totals_);
-            if (step_ % p_.check_every == 0) check();
+#ifdef PBF_BACKEND_CUDA
+            cudaError_t err = cudaGetLastError();
+            if (err != cudaSuccess) return std::string("cuda|") + cudaGetErrorString(err);
+#endif
+            if (step_ % p_.check_every == 0) {
+                std::string failure = check();
+                if (!failure.empty()) return failure;
+            }
         }
+        return std::string();
     }
 
     void adapt_now() override {
@@ -668,8 +676,8 @@ private:
                                         ReduceOp{});
     }
 
-    void check() {
-        if (n_ == 0) return;
+    std::string check() {
+        if (n_ == 0) return std::string();
         Reduced r = reduce_checks();
         double mean_err = double(r.err_sum) / double(n_);
         std::string reason;
@@ -682,7 +690,7 @@ private:
         }
         if (reason.empty()) {
             last_good_ = step_;
-            return;
+            return std::string();
         }
         std::vector<uint32_t> ids;
         if (r.bad > 0) {
@@ -691,14 +699,16 @@ private:
                                        thrust::counting_iterator<uint32_t>(uint32_t(n_)), idx.begin(),
                                        IsBad{make_check()});
             std::size_t nbad = std::min<std::size_t>(std::size_t(end - idx.begin()), 16);
-            std::vector<uint32_t> hidx(nbad);
-            thrust::copy(idx.begin(), idx.begin() + nbad, hidx.begin());
-            for (uint32_t k : hidx) ids.push_back(id_[k]);
+            // Gather the ids on the device, then one copy to the host.
+            dvec<uint32_t> bad_ids(nbad);
+            thrust::gather(thrust::device, idx.begin(), idx.begin() + nbad, id_.begin(), bad_ids.begin());
+            ids.resize(nbad);
+            thrust::copy(bad_ids.begin(), bad_ids.end(), ids.begin());
         }
         std::ostringstream msg;
         msg << "unstable|" << step_ << "|" << last_good_ << "|" << reason << "|";
         for (std::size_t k = 0; k < ids.size(); ++k) msg << (k ? "," : "") << ids[k];
-        throw InstabilityError(msg.str());
+        return msg.str();
     }
 
     Params p_;
