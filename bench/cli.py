@@ -111,8 +111,11 @@ def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Ba
     from bench import runs
     from bench.studies.context import StudyContext
     from bench.studies.scales import resolve_scale
-    return StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
-                        backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+    from bench.studies.environment import write_environment
+    ctx = StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
+                       backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+    write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran
+    return ctx
 
 
 # ---- commands -------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ def run_demo(ctx: StudyContext, scene_name: str = "growing", only: tuple[str, ..
     unknown = [s for s in only if s not in STUDIES]
     if unknown:
         raise ValueError(f"unknown study {unknown[0]!r}: allowed {', '.join(STUDIES)}")
-    environment.write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())
+    environment.write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())  # also when called without the CLI
     jobs = {
         "table1": lambda: run_table1(ctx),
         "scaling": lambda: run_scaling(ctx),
