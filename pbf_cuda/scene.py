@@ -197,9 +197,18 @@ class Scene:
         return list(lo), list(hi)
 
     def lattice_shape(self) -> tuple[int, int, int]:
+        """Particles per axis: lattice sites (i + 1/2) L/N, N = round(L / spacing), inside the fill box
+        (the same lattice as pbf_cuda.initial_state)."""
         lo, hi = self.fill_box()
-        d = self.particles.spacing
-        return tuple(max(0, int(math.floor((hi[a] - lo[a]) / d + 1e-6))) for a in range(3))
+        shape = []
+        for a in range(3):
+            L = self.domain.size[a]
+            n = max(1, int(round(L / self.particles.spacing)))
+            d = L / n
+            first = max(0, int(math.ceil((lo[a] - 1e-9) / d - 0.5)))
+            last = min(n - 1, int(math.floor((hi[a] + 1e-9) / d - 0.5)))
+            shape.append(max(0, last - first + 1))
+        return tuple(shape)
 
     def estimated_particles(self) -> int:
         nx, ny, nz = self.lattice_shape()

@@ -10,7 +10,8 @@
 // slot holds child 1, slot n + scan holds child 2. With the capacity full, the winners that fit split
 // and the rest are counted as rejected.
 //
-// Merging. Candidates have E < beta and l > 0. Threads run over grid cells, not particles (Figure 4):
+// Merging. Candidates have E < beta and l > 0. Each finds its partner first (closest same-level
+// candidate within h_l, a read-only parallel pass). Threads then run over grid cells, not particles (Figure 4):
 // cells are processed in 27 passes, a pass taking every cell whose coordinates are congruent to the
 // pass offset modulo 3 (periodic axes have a cell count divisible by 3 when adaptive, so the pattern
 // holds across the wrap). A thread working on cell A reads and writes only particles in A and its 26
@@ -168,6 +169,29 @@ struct ApplySplits {
     }
 };
 
+// Each merge candidate's partner: the closest same-level candidate within h_l (ties: lower index).
+// Read-only and fully parallel; the passes below only consume the pairs.
+struct FindMergePartners {
+    GridGeometry grid;
+    CellRanges fluid;
+    LevelRadii radii;
+    const uint8_t* flags;
+    uint32_t* partner;  // 0xffffffff: none
+    PBF_HD void operator()(uint32_t i) const {
+        uint32_t best = 0xffffffffu;
+        if (flags[i] & kMergeCandidate) {
+            Float4 pi = fluid.pos[i];
+            float hl = radii.h[radii.level_of_mass(pi.w)];
+            float best_r2 = hl * hl;
+            for_each_neighbor(grid, fluid, xyz(pi), hl, [&](uint32_t j, Vec3, float r2) {
+                if (j == i || !(flags[j] & kMergeCandidate) || fluid.pos[j].w != pi.w) return;
+                if (r2 < best_r2 || (r2 == best_r2 && j < best)) { best = j; best_r2 = r2; }
+            });
+        }
+        partner[i] = best;
+    }
+};
+
 // One pass of the race-free parallel merge: one thread per cell of the pass's colour.
 struct MergePass {
     GridGeometry grid;
@@ -176,6 +200,7 @@ struct MergePass {
     LevelRadii radii;
     int offset[3];
     int per_axis[3];       // cells of this colour along each axis
+    const uint32_t* partner;
     uint8_t* flags;
     Float4* pos;           // == fluid.pos (written in place)
     Float4* vel;
@@ -194,19 +219,9 @@ struct MergePass {
             Float4 pi = pos[i];
             Vec3 xi = xyz(pi);
             int l = radii.level_of_mass(pi.w);
-            float hl = radii.h[l];
-            // Closest same-level candidate within h_l.
-            uint32_t best = 0xffffffffu;
-            float best_r2 = hl * hl;
-            Vec3 best_r{0, 0, 0};
-            for_each_in_block(grid, fluid, c, xi, hl, [&](uint32_t j, Vec3 r, float r2) {
-                if (j == i) return;
-                uint8_t fj = flags[j];
-                if (!(fj & kMergeCandidate) || (fj & (kDead | kMergedNow))) return;
-                if (pos[j].w != pi.w) return;  // same level: equal masses
-                if (r2 < best_r2 || (r2 == best_r2 && j < best)) { best = j; best_r2 = r2; best_r = r; }
-            });
-            if (best == 0xffffffffu) continue;
+            uint32_t best = partner[i];
+            if (best == 0xffffffffu || (flags[best] & (kDead | kMergedNow))) continue;
+            Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
             Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
             float r_min = ap.min_distance * radii.h[l - 1];
             bool clear = true;

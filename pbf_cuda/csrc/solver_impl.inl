@@ -25,7 +25,6 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <sstream>
 #include <string>
 #include <vector>
 
@@ -483,6 +482,7 @@ private:
         }
         if (p_.adaptive) {
             flags_.resize(cap); energy_.resize(cap); split_count_.resize(cap); split_slot_.resize(cap);
+            merge_partner_.resize(cap);
         }
     }
 
@@ -600,11 +600,13 @@ private:
         clock_.begin(kPhaseMerging);
         parallel_for(n_, MarkCandidates{ap_, radii_, raw(pos_), raw(cloud_), raw(energy_), raw(flags_)});
         CellRanges fl = fluid_ranges(pos_);
+        parallel_for(n_, FindMergePartners{grid_, fl, radii_, raw(flags_), raw(merge_partner_)});
         for (int oz = 0; oz < 3; ++oz)
             for (int oy = 0; oy < 3; ++oy)
                 for (int ox = 0; ox < 3; ++ox) {
                     int off[3] = {ox, oy, oz};
-                    MergePass mp{grid_, fl, ap_, radii_, {ox, oy, oz}, {0, 0, 0}, raw(flags_), raw(pos_), raw(vel_),
+                    MergePass mp{grid_, fl, ap_, radii_, {ox, oy, oz}, {0, 0, 0}, raw(merge_partner_), raw(flags_),
+                                 raw(pos_), raw(vel_),
                                  thermo ? raw(temperature_) : nullptr, thermo ? raw(vapor_) : nullptr,
                                  thermo ? raw(cloud_) : nullptr};
                     std::size_t threads = 1;
@@ -705,10 +707,10 @@ private:
             ids.resize(nbad);
             thrust::copy(bad_ids.begin(), bad_ids.end(), ids.begin());
         }
-        std::ostringstream msg;
-        msg << "unstable|" << step_ << "|" << last_good_ << "|" << reason << "|";
-        for (std::size_t k = 0; k < ids.size(); ++k) msg << (k ? "," : "") << ids[k];
-        return msg.str();
+        // Plain string building (no iostreams: their locale machinery is not safe in every link setup).
+        std::string msg = "unstable|" + std::to_string(step_) + "|" + std::to_string(last_good_) + "|" + reason + "|";
+        for (std::size_t k = 0; k < ids.size(); ++k) msg += (k ? "," : "") + std::to_string(ids[k]);
+        return msg;
     }
 
     Params p_;
@@ -728,7 +730,7 @@ private:
     dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
     dvec<uint8_t> flags_;
     dvec<float> energy_;
-    dvec<uint32_t> split_count_, split_slot_;
+    dvec<uint32_t> split_count_, split_slot_, merge_partner_;
     dvec<Float4> bpos_;
     dvec<float> btemperature_, bvapor_, bcloud_;
     dvec<uint32_t> bstart_, bend_;
