@@ -21,16 +21,33 @@ python3 -c "import pbf_cuda; print('backends', pbf_cuda.available_backends())"
 stage "gpu tests"
 timeout 300 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_solver_core.py tests/test_cloud_physics.py \
   tests/test_adaptive.py 2>&1 | tee "$OUT/gpu_tests.log" | tail -15
+R=${REPORT_DIR:-reports/gpu}
 for step in "$@"; do
   stage "$step"
   case "$step" in
-    scaling) timeout 240 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 --steps 20 --quiet \
-               --out "$OUT/pbf_scaling.csv" && cat "$OUT/pbf_scaling.csv" ;;
-    table1) timeout 400 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$OUT/table1" -q && cat "$OUT/table1/data/table1.csv" ;;
-    grid) timeout 300 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
-            --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$OUT/grid_scaling.csv" && cat "$OUT/grid_scaling.csv" ;;
-    demo) timeout 580 python3 -m bench.cli demo --scale gpu --out "$OUT/demo" -q ;;
+    table1) timeout 300 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$R" -q && cat "$R/data/table1.csv" ;;
+    scaling) timeout 300 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 16000000 --steps 20 --quiet \
+               --out "$R/data/pbf_scaling.csv" && cat "$R/data/pbf_scaling.csv" ;;
+    grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
+            --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
+    compare|stress|sweep)
+      timeout 400 python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
+    snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
+      python3 - "$R" <<'PY'
+import sys, glob, numpy as np, pandas as pd
+out = sys.argv[1]
+for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
+    snaps = sorted(glob.glob(f"{row.run_dir}/snapshots/*.npz"))
+    if not snaps:
+        continue
+    z = np.load(snaps[-1])
+    keep = {k: z[k] for k in ("position", "cloud", "temperature", "level", "kernel_radius", "mass") if k in z}
+    np.savez_compressed(f"{out}/data/state_{row.example}_{row.mode}.npz", **keep)
+    print("saved", row.example, row.mode, len(keep["position"]))
+PY
+      ;;
     *) echo "unknown step $step" ;;
   esac
 done
+if [ -d "$R" ]; then tar czf "$OUT/report_data.tar.gz" -C "$(dirname "$R")" "$(basename "$R")"; ls -la "$OUT"; fi
 stage "done"
