@@ -33,7 +33,7 @@ for step in "$@"; do
     compare|stress|sweep)
       timeout 400 python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
-      python3 - "$R" <<'PY'
+      python3 - "$R" <<PY
 import sys, glob, numpy as np, pandas as pd
 out = sys.argv[1]
 for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
@@ -41,13 +41,18 @@ for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
     if not snaps:
         continue
     z = np.load(snaps[-1])
-    keep = {k: z[k] for k in ("position", "cloud", "temperature", "level", "kernel_radius", "mass") if k in z}
-    np.savez_compressed(f"{out}/data/state_{row.example}_{row.mode}.npz", **keep)
-    print("saved", row.example, row.mode, len(keep["position"]))
+    if row.example != "growing":
+        continue
+    # All cloudy particles and one in ten of the clear ones: enough for the renders, small enough to copy.
+    rng = np.random.default_rng(0)
+    sel = (z["cloud"] > 1e-6) | (rng.random(len(z["cloud"])) < 0.1)
+    keep = {k: z[k][sel] for k in ("position", "cloud", "level") if k in z}
+    np.savez_compressed(f"$OUT/state_{row.example}_{row.mode}.npz", **keep)
+    print("saved", row.example, row.mode, int(sel.sum()), "of", len(sel))
 PY
       ;;
     *) echo "unknown step $step" ;;
   esac
 done
-if [ -d "$R" ]; then tar czf "$OUT/report_data.tar.gz" -C "$(dirname "$R")" "$(basename "$R")"; ls -la "$OUT"; fi
+if [ -d "$R" ]; then tar czf "$OUT/report_data.tar.gz" --exclude='*.npz' -C "$(dirname "$R")" "$(basename "$R")"; ls -la "$OUT"; fi
 stage "done"
