@@ -31,7 +31,7 @@ for step in "$@"; do
     grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
     compare|stress|sweep)
-      timeout 400 python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
+      timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
       python3 - "$R" <<PY
 import sys, glob, numpy as np, pandas as pd
