@@ -91,31 +91,26 @@ public:
         impl_->set_boundary(n, pos.data(), t ? temperature.data() : nullptr, v ? vapor.data() : nullptr);
     }
 
+    // Host copy of a solver array as a numpy array that owns its buffer.
+    template <class T>
+    nb::ndarray<nb::numpy, T> host_copy(const std::string& name, pbf::ArrayKind kind, const char* what) {
+        pbf::ArrayView v = impl_->view(name);
+        if (v.kind != kind) throw std::invalid_argument(name + " is not " + what);
+        std::size_t cols = kind == pbf::ArrayKind::Float4 ? 4 : 1;
+        T* buf = new T[v.n * cols + 1];
+        impl_->copy_to_host(name, buf);
+        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<T*>(p); });
+        if (cols == 1) return nb::ndarray<nb::numpy, T>(buf, {v.n}, owner);
+        return nb::ndarray<nb::numpy, T>(buf, {v.n, cols}, owner);
+    }
     nb::ndarray<nb::numpy, float> get_float4(const std::string& name) {
-        pbf::ArrayView v = impl_->view(name);
-        if (v.kind != pbf::ArrayKind::Float4) throw std::invalid_argument(name + " is not a 4-vector array");
-        float* buf = new float[v.n * 4 + 1];
-        impl_->copy_to_host(name, buf);
-        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<float*>(p); });
-        return nb::ndarray<nb::numpy, float>(buf, {v.n, 4}, owner);
+        return host_copy<float>(name, pbf::ArrayKind::Float4, "a 4-vector array");
     }
-
     nb::ndarray<nb::numpy, float> get_float(const std::string& name) {
-        pbf::ArrayView v = impl_->view(name);
-        if (v.kind != pbf::ArrayKind::Float) throw std::invalid_argument(name + " is not a float array");
-        float* buf = new float[v.n + 1];
-        impl_->copy_to_host(name, buf);
-        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<float*>(p); });
-        return nb::ndarray<nb::numpy, float>(buf, {v.n}, owner);
+        return host_copy<float>(name, pbf::ArrayKind::Float, "a float array");
     }
-
     nb::ndarray<nb::numpy, uint32_t> get_uint(const std::string& name) {
-        pbf::ArrayView v = impl_->view(name);
-        if (v.kind != pbf::ArrayKind::UInt) throw std::invalid_argument(name + " is not an integer array");
-        uint32_t* buf = new uint32_t[v.n + 1];
-        impl_->copy_to_host(name, buf);
-        nb::capsule owner(buf, [](void* p) noexcept { delete[] static_cast<uint32_t*>(p); });
-        return nb::ndarray<nb::numpy, uint32_t>(buf, {v.n}, owner);
+        return host_copy<uint32_t>(name, pbf::ArrayKind::UInt, "an integer array");
     }
 
     // Zero-copy view (DLPack): CUDA memory on the GPU backend, host memory on the CPU backend.
