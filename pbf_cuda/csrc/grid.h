@@ -73,6 +73,16 @@ PBF_INLINE Vec3 min_image(const GridGeometry& g, Vec3 d) {
     return d;
 }
 
+// True when x lies within distance r of a wall (boundary particles can only be neighbours then).
+PBF_INLINE bool near_wall(const GridGeometry& g, Vec3 x, float r) {
+    for (int a = 0; a < 3; ++a) {
+        if (g.periodic[a]) continue;
+        float v = component(x, a);
+        if (v < r || v > g.domain[a] - r) return true;
+    }
+    return false;
+}
+
 // Wrap a position into [0, L) on periodic axes.
 PBF_INLINE Vec3 wrap_position(const GridGeometry& g, Vec3 p) {
     for (int a = 0; a < 3; ++a) {

@@ -54,7 +54,7 @@ struct DensityLambda {
                 sum_grad2 += dot(gj, gj) / mj;
             }
         });
-        if (boundary.start) {
+        if (boundary.start && near_wall(grid, xi, cp.h0)) {
             for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
                 float mb = boundary.pos[b].w;
                 rho += mb * (Adaptive ? poly6_sym(r2, hi, cp.h0) : poly6(r2, hi));
@@ -102,7 +102,7 @@ struct PositionCorrection {
             Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
             dp += (li * mj / mi + lambda[j] + s) * gw;
         });
-        if (boundary.start) {
+        if (boundary.start && near_wall(grid, xi, cp.h0)) {
             for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
                 float mb = boundary.pos[b].w;
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);

@@ -51,7 +51,7 @@ struct SmoothScalars {
             for (int k = 0; k < 3; ++k)
                 if (f.in[k]) C[k] += c * (vi[k] - f.in[k][j]);
         });
-        if (boundary.start) {
+        if (boundary.start && near_wall(grid, xi, h0)) {
             for_each_neighbor(grid, boundary, xi, h0, [&](uint32_t b, Vec3 r, float r2) {
                 float mb = boundary.pos[b].w;
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, h0) : spiky_gradient(r, r2, hi);
