@@ -28,7 +28,7 @@ for step in "$@"; do
     table1) timeout 300 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$R" -q && cat "$R/data/table1.csv" ;;
     scaling) timeout 300 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 16000000 --steps 20 --quiet \
                --out "$R/data/pbf_scaling.csv" && cat "$R/data/pbf_scaling.csv" ;;
-    grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices gpu \
+    grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices cpu,gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
