@@ -3,11 +3,9 @@
 //
 // Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
 // x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
-// of level l+1 (the directions are a hash of id and step, so every thread can compute its neighbours'
-// children). It splits only if (a) no higher-priority candidate (larger E; ties broken by a hash of id
-// and step) within the conflict radius would put a child closer than the threshold to one of its own
-// children, so children of two parents splitting in the same step are never too close, and (b) no
-// existing particle other than the parent lies within
+// of level l+1. It splits only if (a) no other candidate of higher priority (larger E, then smaller id)
+// lies within the conflict radius (larger E wins; ties go to a hash of id and step) (so children of two parents splitting in the same step can never
+// come closer than the threshold), and (b) no existing particle other than the parent lies within
 // min_distance * h_{l+1} of either child. Winners get slots from an exclusive prefix sum; the parent's
 // slot holds child 1, slot n + scan holds child 2. With the capacity full, the winners that fit split
 // and the rest are counted as rejected.
@@ -89,34 +87,22 @@ struct DecideSplits {
         int l = radii.level_of_mass(pi.w);
         float ei = energy[i];
         uint32_t idi = id[i];
+        // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
+        // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
+        uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
+        bool win = true;
+        for_each_neighbor(grid, fluid, xi, ap.conflict_radius, [&](uint32_t j, Vec3, float) {
+            if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
+            float ej = energy[j];
+            uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
+            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) win = false;
+        });
+        if (!win) return;
         Vec3 n = split_direction(idi, step);
         Vec3 off = (0.5f * ap.spacing[l + 1]) * n;
         Vec3 c1 = xi + off, c2 = xi - off;
         float r_min = ap.min_distance * radii.h[l + 1];
         float r2_min = r_min * r_min;
-        // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step). A candidate
-        // yields only to a higher-priority candidate whose children (their directions are known: a hash of
-        // id and step) would come closer to its own children than the threshold.
-        uint32_t salt = hash_u32(step + 0x51ed27u);
-        uint32_t hi_rank = hash_u32(idi ^ salt);
-        bool win = true;
-        for_each_neighbor(grid, fluid, xi, ap.conflict_radius, [&](uint32_t j, Vec3, float) {
-            if (!win || j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
-            float ej = energy[j];
-            uint32_t hj = hash_u32(id[j] ^ salt);
-            if (!(ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi))))) return;
-            Float4 pj = fluid.pos[j];
-            int lj = radii.level_of_mass(pj.w);
-            Vec3 offj = (0.5f * ap.spacing[lj + 1]) * split_direction(id[j], step);
-            Vec3 cj1 = xyz(pj) + offj, cj2 = xyz(pj) - offj;
-            float r = ap.min_distance * fmaxf(radii.h[l + 1], radii.h[lj + 1]);
-            float r2 = r * r;
-            Vec3 d[4] = {min_image(grid, c1 - cj1), min_image(grid, c1 - cj2), min_image(grid, c2 - cj1),
-                         min_image(grid, c2 - cj2)};
-            for (int k = 0; k < 4; ++k)
-                if (dot(d[k], d[k]) < r2) win = false;
-        });
-        if (!win) return;
         bool clear = true;
         // Children must stay inside the walls.
         for (int a = 0; a < 3; ++a) {
