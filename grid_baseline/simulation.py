@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -351,13 +349,7 @@ class GridSimulation:
                 "step": self._step, "time": self.time, "shape": list(self.shape),
                 "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device),
                 "cfl_target": self.params.cfl_target, "max_substeps": self.params.max_substeps}
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-        return path
+        return _pbf.atomic_savez(path, meta, **arrays)
 
     @classmethod
     def load_snapshot(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":

@@ -12,18 +12,16 @@ copies them to numpy, :meth:`device_arrays` gives zero-copy DLPack views.
 """
 from __future__ import annotations
 
-import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from . import initial_state
+from .files import atomic_savez, read_meta
 from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
-from .scene import Scene, SceneError, load_scene, scene_from_dict
+from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
 
@@ -298,18 +296,12 @@ class Simulation:
             arrays["boundary_vapor"] = s.get_float("boundary_vapor")
         meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
                 "time": self.time, "next_id": s.next_id(), "backend": self.backend}
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-        return path
+        return atomic_savez(path, meta, **arrays)
 
     @classmethod
     def load(cls, path: str | Path, backend: str | None = None) -> "Simulation":
         with np.load(Path(path)) as z:
-            meta = json.loads(bytes(z["meta"]).decode())
+            meta = read_meta(z)
             if meta.get("version") != CHECKPOINT_VERSION:
                 raise ValueError(f"{path}: checkpoint version {meta.get('version')} != {CHECKPOINT_VERSION}")
             scene = scene_from_dict(meta["scene"], source=str(path))
