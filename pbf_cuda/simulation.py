@@ -141,6 +141,29 @@ def build_params(scene: Scene, n_fluid: int, capacity: int):
     return p
 
 
+class DeviceArray:
+    """A zero-copy view of one solver array (the solver must outlive it)."""
+
+    def __init__(self, solver, name: str):
+        self._solver = solver
+        self.name = name
+        ptr, n, cols, typestr, on_device = solver.view_info(name)
+        self.shape = (n, cols) if cols > 1 else (n,)
+        self.on_device = bool(on_device)
+        interface = {"shape": self.shape, "typestr": typestr, "data": (ptr, False), "version": 3,
+                     "strides": None}
+        if self.on_device:
+            self.__cuda_array_interface__ = dict(interface, stream=None)
+        else:
+            self.__array_interface__ = interface
+
+    def __dlpack__(self, stream=None, **kwargs):
+        return self._solver.view(self.name)
+
+    def __dlpack_device__(self):
+        return (2, 0) if self.on_device else (1, 0)   # kDLCUDA / kDLCPU, device 0
+
+
 class Simulation:
     """One particle simulation of a scene on one backend ('cpu' or 'cuda')."""
 
@@ -258,12 +281,14 @@ class Simulation:
         return out
 
     def device_arrays(self) -> dict:
-        """Zero-copy views of the solver's arrays (DLPack; numpy on CPU, CUDA memory on the GPU).
-        Valid until the next step() (which re-sorts them)."""
+        """Zero-copy views of the solver's arrays: objects with __dlpack__ (np.from_dlpack,
+        cupy.from_dlpack, torch.from_dlpack, jax.dlpack) and __cuda_array_interface__ on the GPU or
+        __array_interface__ on the CPU. position and velocity are (N, 4): x, y, z and mass (position)
+        or 0 (velocity). Valid until the next step() (which re-sorts the particles)."""
         names = ["position", "velocity", "id"]
         if self.scene.thermodynamics:
             names += ["temperature", "vapor", "cloud"]
-        return {n: self._solver.view(n) for n in names}
+        return {n: DeviceArray(self._solver, n) for n in names}
 
     def timings(self) -> dict[str, dict]:
         """Per-phase wall time on the device (CUDA events) or host (steady clock), in ms.

@@ -181,6 +181,17 @@ def test_cpu_and_cuda_agree_on_a_short_run():
     assert np.abs(a["temperature"] - b["temperature"]).max() < 1e-2
 
 
+def test_cpu_device_arrays_are_zero_copy_views():
+    sim = Simulation(periodic_scene(), backend="cpu")
+    sim.step(1)
+    views = sim.device_arrays()
+    pos = np.from_dlpack(views["position"])
+    assert pos.shape == (sim.n_particles, 4)
+    assert np.shares_memory(pos, np.asarray(views["position"]))
+    assert np.array_equal(pos[:, :3], sim.state()["position"])
+    assert np.array_equal(np.from_dlpack(views["id"]), sim.state()["id"])
+
+
 @pytest.mark.gpu
 def test_cuda_device_arrays_are_zero_copy():
     cupy = pytest.importorskip("cupy")
@@ -190,3 +201,6 @@ def test_cuda_device_arrays_are_zero_copy():
     pos = cupy.from_dlpack(views["position"])
     assert pos.shape == (sim.n_particles, 4)
     assert np.allclose(cupy.asnumpy(pos[:, :3]), sim.state()["position"])
+    via_interface = cupy.asarray(views["temperature"])               # __cuda_array_interface__
+    assert via_interface.data.ptr == views["temperature"].__cuda_array_interface__["data"][0]
+    assert np.allclose(cupy.asnumpy(via_interface), sim.state()["temperature"])

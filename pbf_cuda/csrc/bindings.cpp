@@ -243,6 +243,13 @@ NB_MODULE(_core, m) {
         .def("view", [](nb::handle self, const std::string& name) {
             return nb::cast<PySolver&>(self).view(self, name);
         })
+        .def("view_info", [](PySolver& s, const std::string& name) {
+            pbf::ArrayView v = s.impl_->view(name);
+            std::size_t cols = v.kind == pbf::ArrayKind::Float4 ? 4 : 1;
+            const char* typestr = v.kind == pbf::ArrayKind::UInt ? "<u4" : "<f4";
+            return std::make_tuple(reinterpret_cast<std::uintptr_t>(v.data), v.n, cols, std::string(typestr),
+                                   v.on_device);
+        })
         .def("timings", &PySolver::timings)
         .def("reset_timings", [](PySolver& s) { s.impl_->reset_timings(); })
         .def("stats", &PySolver::stats);
