@@ -25,7 +25,8 @@ from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
 
-PHASES = ("pbf", "neighbors", "solver", "smoothing", "cloud_dynamics", "splitting", "merging")
+PHASES = ("pbf", "neighbors", "solver", "smoothing", "cloud_dynamics", "splitting", "merging", "merge_passes",
+          "compaction")
 CHECKPOINT_VERSION = 1
 
 

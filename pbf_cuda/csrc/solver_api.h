@@ -12,12 +12,13 @@
 
 namespace pbf {
 
-// Table 1 phases and finer timers. The pbf phase contains neighbors and solver.
+// Table 1 phases and finer timers. The pbf phase contains neighbors and solver; merging contains
+// merge_passes (the coloured cell passes of Figure 4) and compaction.
 enum Phase : int { kPhasePBF = 0, kPhaseNeighbors, kPhaseSolver, kPhaseSmoothing, kPhaseCloudDynamics,
-                   kPhaseSplitting, kPhaseMerging, kNumPhases };
+                   kPhaseSplitting, kPhaseMerging, kPhaseMergePasses, kPhaseCompaction, kNumPhases };
 inline const char* phase_name(int p) {
     static const char* names[kNumPhases] = {"pbf", "neighbors", "solver", "smoothing", "cloud_dynamics",
-                                            "splitting", "merging"};
+                                            "splitting", "merging", "merge_passes", "compaction"};
     return names[p];
 }
 

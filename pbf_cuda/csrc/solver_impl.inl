@@ -601,6 +601,7 @@ private:
         parallel_for(n_, MarkCandidates{ap_, radii_, raw(pos_), raw(cloud_), raw(energy_), raw(flags_)});
         CellRanges fl = fluid_ranges(pos_);
         parallel_for(n_, FindMergePartners{grid_, fl, radii_, raw(flags_), raw(merge_partner_)});
+        clock_.begin(kPhaseMergePasses);
         for (int oz = 0; oz < 3; ++oz)
             for (int oy = 0; oy < 3; ++oy)
                 for (int ox = 0; ox < 3; ++ox) {
@@ -617,6 +618,7 @@ private:
                     }
                     parallel_for(threads, mp);
                 }
+        clock_.end(kPhaseMergePasses);
         clock_.end(kPhaseMerging);
 
         clock_.begin(kPhaseSplitting);
@@ -643,6 +645,7 @@ private:
 
         // Compaction: drop particles consumed by merges (kept in order, deterministic).
         clock_.begin(kPhaseMerging);
+        clock_.begin(kPhaseCompaction);
         auto end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
                                    thrust::counting_iterator<uint32_t>(uint32_t(n_)), perm_.begin(),
                                    IsAlive{raw(flags_)});
@@ -652,6 +655,7 @@ private:
             n_ = alive;
             permute_all(false);
         }
+        clock_.end(kPhaseCompaction);
         clock_.end(kPhaseMerging);
 
         last_stats_.split_last = (long long)splits;
