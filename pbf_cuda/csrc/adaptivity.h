@@ -111,9 +111,7 @@ struct DecideSplits {
             if (lo < 0.0f || hi > grid.domain[a]) clear = false;
         }
         if (clear) {
-            // Only particles within |offset| + r_min of the parent can come within r_min of a child.
-            float reach = 0.5f * ap.spacing[l + 1] + r_min;
-            for_each_neighbor(grid, fluid, xi, reach, [&](uint32_t j, Vec3, float) {
+            for_each_neighbor(grid, fluid, xi, ap.h0, [&](uint32_t j, Vec3, float) {
                 if (j == i || (flags[j] & kDead)) return;
                 Vec3 xj = xyz(fluid.pos[j]);
                 Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);

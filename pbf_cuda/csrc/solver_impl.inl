@@ -240,25 +240,6 @@ struct IsBad {
     PBF_HD bool operator()(uint32_t i) const { return check.is_bad(i); }
 };
 
-// Bit (cx % 3) + 3 (cy % 3) + 9 (cz % 3) of the merge pass that holds particle i's cell, when i has a
-// merge partner (0 otherwise); OR-reduced to skip passes with nothing to merge.
-struct MergePassBit {
-    GridGeometry g;
-    const uint32_t* keys;
-    const uint32_t* partner;
-    PBF_HD uint32_t operator()(uint32_t i) const {
-        if (partner[i] == 0xffffffffu) return 0u;
-        uint32_t k = keys[i];
-        uint32_t cx = k % uint32_t(g.dims[0]), cy = (k / uint32_t(g.dims[0])) % uint32_t(g.dims[1]);
-        uint32_t cz = k / (uint32_t(g.dims[0]) * uint32_t(g.dims[1]));
-        return 1u << ((cx % 3) + 3 * (cy % 3) + 9 * (cz % 3));
-    }
-};
-
-struct BitOr {
-    PBF_HD uint32_t operator()(uint32_t a, uint32_t b) const { return a | b; }
-};
-
 struct IsAlive {
     const uint8_t* flags;
     PBF_HD bool operator()(uint32_t i) const { return !(flags[i] & kDead); }
@@ -621,13 +602,9 @@ private:
         CellRanges fl = fluid_ranges(pos_);
         parallel_for(n_, FindMergePartners{grid_, fl, radii_, raw(flags_), raw(merge_partner_)});
         clock_.begin(kPhaseMergePasses);
-        uint32_t passes_with_work = thrust::transform_reduce(
-            thrust::device, thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n_)),
-            MergePassBit{grid_, raw(keys_), raw(merge_partner_)}, 0u, BitOr{});
         for (int oz = 0; oz < 3; ++oz)
             for (int oy = 0; oy < 3; ++oy)
                 for (int ox = 0; ox < 3; ++ox) {
-                    if (!(passes_with_work & (1u << (ox + 3 * oy + 9 * oz)))) continue;
                     int off[3] = {ox, oy, oz};
                     MergePass mp{grid_, fl, ap_, radii_, {ox, oy, oz}, {0, 0, 0}, raw(merge_partner_), raw(flags_),
                                  raw(pos_), raw(vel_),
