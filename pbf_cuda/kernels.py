@@ -24,11 +24,6 @@ def spiky_gradient(offsets, h):
     return _core().spiky_gradient(np.ascontiguousarray(offsets, dtype=np.float32), float(h))
 
 
-def lattice_kernel_sum(h: float, spacing: float) -> float:
-    """sum_j W(|x_j|, h) over a cubic lattice of the given spacing around one site (1/m^3)."""
-    return float(_core().lattice_kernel_sum(float(h), float(spacing)))
-
-
 def reference_gradient_norm2(h: float, spacing: float, mass: float, rest_density: float) -> float:
     """sum_k |grad_k C_i|^2 / m_k for a particle with a full lattice neighbourhood (1/(kg m^2))."""
     return float(_core().reference_gradient_norm2(float(h), float(spacing), float(mass), float(rest_density)))

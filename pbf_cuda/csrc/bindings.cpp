@@ -156,19 +156,6 @@ public:
     bool thermodynamics_ = false;
 };
 
-// sum_j W(|x_j|, h) over the cubic lattice of spacing d around one site (1/m^3).
-double lattice_kernel_sum(float h, float d) {
-    int r = int(std::ceil(h / d)) + 1;
-    double s = 0.0;
-    for (int i = -r; i <= r; ++i)
-        for (int j = -r; j <= r; ++j)
-            for (int k = -r; k <= r; ++k) {
-                float r2 = d * d * float(i * i + j * j + k * k);
-                s += pbf::poly6(r2, h);
-            }
-    return s;
-}
-
 // sum_k |grad_k C_i|^2 / m_k for a full lattice neighbourhood (constraint denominator of eq. 4).
 double reference_gradient_norm2(float h, float d, float m, float rho0) {
     int r = int(std::ceil(h / d)) + 1;
@@ -281,7 +268,6 @@ NB_MODULE(_core, m) {
         nb::capsule owner(out, [](void* p) noexcept { delete[] static_cast<float*>(p); });
         return nb::ndarray<nb::numpy, float>(out, {n, 3}, owner);
     });
-    m.def("lattice_kernel_sum", &lattice_kernel_sum, "h"_a, "spacing"_a);
     m.def("reference_gradient_norm2", &reference_gradient_norm2, "h"_a, "spacing"_a, "mass"_a, "rest_density"_a);
     m.def("simplex2", [](nb::ndarray<const double, nb::c_contig, nb::device::cpu> x,
                          nb::ndarray<const double, nb::c_contig, nb::device::cpu> y) {
