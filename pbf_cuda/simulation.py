@@ -25,8 +25,6 @@ from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
 
-PHASES = ("pbf", "neighbors", "solver", "smoothing", "cloud_dynamics", "splitting", "merging", "merge_passes",
-          "compaction")
 CHECKPOINT_VERSION = 1
 
 
@@ -75,16 +73,15 @@ def _resolve_backend(backend: str) -> str:
     return backend
 
 
-def build_params(scene: Scene, n_fluid: int, capacity: int):
+def build_params(scene: Scene, capacity: int):
     """Flatten a Scene into the solver's parameter struct (derived constants computed here)."""
     core = _core()
     p = core.Params()
-    d = scene.particles.spacing
     h0 = scene.kernel_radius
     rho0 = scene.particles.rest_density
     # m0 such that a full lattice neighbourhood has density exactly rho0 (eq. 1).
     m0 = initial_state.lattice_mass(scene)
-    d = float(np.prod(initial_state.lattice_spacings(scene)) ** (1.0 / 3.0))
+    d = float(np.prod(initial_state.lattice_spacings(scene)) ** (1.0 / 3.0))   # mean lattice spacing
     p.domain = list(scene.domain.size)
     p.periodic = [b == "periodic" for b in scene.domain.boundary]
     p.spacing = d
@@ -185,7 +182,7 @@ class Simulation:
         if scene.adaptive.enabled:
             capacity = max(n, int(math.ceil(n * scene.adaptive.capacity)))
         self.capacity = capacity
-        self._params = build_params(scene, n, capacity)
+        self._params = build_params(scene, capacity)
         core = _core()
         try:
             self._solver = core.Solver(self._params, self.backend)

@@ -453,9 +453,13 @@ public:
             s.max_speed = std::sqrt(double(r.speed2_max));
             for (int k = 0; k < 3; ++k) { s.min_position[k] = r.lo[k]; s.max_position[k] = r.hi[k]; }
         }
+        s.level_counts.assign(std::size_t(std::max(p_.max_level, 0) + 1), 0);
+        if (!p_.adaptive) {  // every particle is level 0: no host copy of the positions
+            s.level_counts[0] = (long long)n_;
+            return s;
+        }
         std::vector<Float4> hp(n_);
         if (n_) thrust::copy(pos_.begin(), pos_.begin() + n_, hp.begin());
-        s.level_counts.assign(std::size_t(std::max(p_.max_level, 0) + 1), 0);
         for (auto& q : hp) {
             int l = radii_.level_of_mass(q.w);
             if (l >= int(s.level_counts.size())) s.level_counts.resize(l + 1, 0);
