@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# One batch on a CUDA machine: build, GPU tests, benchmarks (PBF scaling, Table 1, grid scaling).
+# One batch on a CUDA machine: build, GPU tests, benchmarks (PBF scaling, Table 1, split/merge cost,
+# grid scaling).
 # Results go to $OUT (default reports/gpu/session); set CLOUDPBF_COMMIT when the tree has no .git.
 # Wheels missing on the machine can be carried in .whl/ (installed into /tmp/site first).
 set -uo pipefail
@@ -30,6 +31,8 @@ for step in "$@"; do
                --out "$R/data/pbf_scaling.csv" && cat "$R/data/pbf_scaling.csv" ;;
     grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices cpu,gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
+    adaptive_cost) timeout 300 python3 -m bench.studies.adaptive_cost --spacing 45 --steps 500 --quiet \
+                     --out "$R/data/adaptive_cost.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista

@@ -57,18 +57,22 @@ def test_split_and_merge_conserve_mass_momentum_water_and_heat(backend):
     assert levels[1:].sum() > 0
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_merge_consumes_each_particle_once(backend):
-    scene = adaptive_scene()
+def refined_state(scene, backend="cpu"):
+    """Two rounds of splitting in a uniform cloud, then the cloud cleared: every refined particle is a
+    merge candidate. Returns the state arrays, ordered by id."""
     sim = with_cloud(scene, backend, lambda p: np.full(len(p), 2e-3))
     sim.adapt()
     sim.adapt()
-    split = by_id(sim.state())
     assert sim.stats()["splits"] > 0
-    # Clear the cloud: every refined particle becomes a merge candidate.
-    st = split.copy()
+    st = by_id(sim.state())
     st["cloud"] = np.zeros_like(st["cloud"])
-    merging = Simulation.from_arrays(scene, st, backend=backend)
+    return st
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_merge_consumes_each_particle_once(backend):
+    scene = adaptive_scene()
+    merging = Simulation.from_arrays(scene, refined_state(scene, backend), backend=backend)
     before = by_id(merging.state())
     merging.adapt()
     after = by_id(merging.state())
@@ -85,6 +89,51 @@ def test_merge_consumes_each_particle_once(backend):
     assert totals(after)["mass"] == totals(before)["mass"]
 
 
+def periodic_tree(scene, pos):
+    """A k-d tree over positions (m), periodic in x and z, the y walls kept far apart."""
+    L = np.array(scene.domain.size)
+    pos = pos.astype(np.float64).copy()
+    pos[:, 1] += 10 * L[1]
+    return cKDTree(pos, boxsize=[L[0], 100 * L[1], L[2]]), pos
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_merged_particles_keep_the_distance_threshold(backend):
+    """A merge happens only where no other particle is within min_distance h_{l-1} of the midpoint, and
+    later merges respect the survivors: the final survivors keep that distance from everything (taking
+    the smaller radius of the two particles, since a later merge checks with its own level's radius).
+    Within a GPU team the cell's pairs are taken one by one, so a race would break this."""
+    scene = adaptive_scene()
+    start = refined_state(scene, "cpu")
+    sim = Simulation.from_arrays(scene, start, backend=backend)
+    sim.adapt()
+    after = by_id(sim.state())
+    assert sim.stats()["merges_last_step"] > 50
+    m_before = dict(zip(start["id"], start["mass"]))
+    grown = np.array([m != m_before[i] for i, m in zip(after["id"], after["mass"])])
+    tree, pos = periodic_tree(scene, after["position"])
+    radius = scene.adaptive.min_distance * after["kernel_radius"].astype(np.float64)
+    for g in np.flatnonzero(grown):
+        for k in tree.query_ball_point(pos[g], radius[g] * (1 - 1e-4)):
+            if k != g:
+                assert np.linalg.norm(pos[k] - pos[g]) >= min(radius[g], radius[k]) * (1 - 1e-4)
+
+
+@pytest.mark.gpu
+def test_merge_picks_the_same_pairs_on_cpu_and_gpu():
+    """Same input, one adapt(): the GPU's warp-wide merge passes consume the same particles as the CPU's
+    one-thread-per-cell passes."""
+    scene = adaptive_scene()
+    start = refined_state(scene, "cpu")
+    removed = {}
+    for backend in ("cpu", "cuda"):
+        sim = Simulation.from_arrays(scene, start, backend=backend)
+        sim.adapt()
+        removed[backend] = set(start["id"]) - set(sim.state()["id"])
+    assert len(removed["cpu"]) > 50
+    assert removed["cpu"] == removed["cuda"]
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_children_never_closer_than_the_threshold(backend):
     scene = adaptive_scene()
@@ -95,10 +144,7 @@ def test_children_never_closer_than_the_threshold(backend):
     old = dict(zip(before["id"], before["level"]))
     child = np.array([(i not in old) or (old[i] != l) for i, l in zip(after["id"], after["level"])])
     assert child.sum() > 0
-    L = np.array(scene.domain.size)
-    pos = after["position"].astype(np.float64)
-    pos[:, 1] += 10 * L[1]                       # keep y non-periodic inside the box tree
-    tree = cKDTree(pos, boxsize=[L[0], 100 * L[1], L[2]])
+    tree, pos = periodic_tree(scene, after["position"])
     dist, _ = tree.query(pos[child], k=2)
     threshold = scene.adaptive.min_distance * after["kernel_radius"][child]
     assert np.all(dist[:, 1] >= threshold * (1 - 1e-4))

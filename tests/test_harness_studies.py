@@ -203,3 +203,21 @@ def test_table1_row_is_ms_per_step_without_double_counting():
     paper_total = 628.78 + 64.55 + 12.50 + 6.10 + 23.71                  # the paper's row 5b
     assert row["paper_total_ms"] == pytest.approx(paper_total) and row["paper_max_particles"] == 540000
     assert row["speedup_vs_paper"] == pytest.approx(paper_total / 12.9)
+
+
+def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):
+    pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
+    from bench.studies.adaptive_cost import adaptive_cost
+    frame = adaptive_cost(["growing_adaptive"], spacing=200.0, steps=12, backend="cpu", runs_root=tmp_path,
+                          quiet=True)
+    row = frame.iloc[0]
+    assert row["stable"] and row["backend"] == "cpu"
+    assert row["max_particles"] >= row["mean_particles"] > 1000
+    parts = [row[f"{p}_ms"] for p in ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")]
+    assert row["total_ms"] == pytest.approx(sum(parts))
+    assert 0 < row["merge_passes_ms"] + row["compaction_ms"] <= row["merging_ms"]
+    assert row["split_vs_pbf"] == pytest.approx(row["splitting_ms"] / row["pbf_ms"])
+    assert pd.isna(row["meets_targets"])               # targets are for ~500k particles on the GPU
+    again = adaptive_cost(["growing_adaptive"], spacing=200.0, steps=12, backend="cpu", runs_root=tmp_path,
+                          quiet=True)
+    assert again.iloc[0]["run_dir"] == row["run_dir"] and again.iloc[0]["splitting_ms"] == row["splitting_ms"]

@@ -3,25 +3,28 @@
 //
 // Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
 // x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
-// of level l+1. It splits only if (a) no other candidate of higher priority (larger E, then smaller id)
-// lies within the conflict radius (larger E wins; ties go to a hash of id and step) (so children of two parents splitting in the same step can never
-// come closer than the threshold), and (b) no existing particle other than the parent lies within
-// min_distance * h_{l+1} of either child. Winners get slots from an exclusive prefix sum; the parent's
-// slot holds child 1, slot n + scan holds child 2. With the capacity full, the winners that fit split
-// and the rest are counted as rejected.
+// of level l+1. It splits only if (a) no other candidate of higher priority (larger E; ties go to a
+// hash of id and step) lies within the conflict radius, so children of two parents splitting in the
+// same step never come closer than the threshold, and (b) no existing particle other than the parent
+// lies within min_distance * h_{l+1} of either child (only particles within |offset| + r_min of the
+// parent can). Winners get slots from a prefix sum; the parent's slot holds child 1, slot
+// n + (winners before it) holds child 2. With the capacity full, the winners that fit split and the
+// rest are counted as rejected.
 //
 // Merging. Candidates have E < beta and l > 0. Each finds its partner first (closest same-level
-// candidate within h_l, a read-only parallel pass). Threads then run over grid cells, not particles (Figure 4):
-// cells are processed in 27 passes, a pass taking every cell whose coordinates are congruent to the
-// pass offset modulo 3 (periodic axes have a cell count divisible by 3 when adaptive, so the pattern
-// holds across the wrap). A thread working on cell A reads and writes only particles in A and its 26
-// neighbours (A +- 1): the partner search radius h_l <= h0 <= cell side, and the too-close check around
-// the midpoint m = (x_i + x_j)/2 covers |x - m| < min_distance h_{l-1} <= 0.5 h0 with |m - x_i| <= h_l/2,
-// so every particle it touches lies within h0 of x_i, i.e. in A +- 1. Two cells of one pass are at least
-// 3 cells apart on some axis, so their A +- 1 blocks are disjoint: no particle is read by one thread while
-// another writes it, and none is consumed twice (eq. 21 with d = ceil(h / L) = 1, stride 2d + 1).
-// The merged particle replaces i at the midpoint (mass-weighted averages: equal masses); j is marked dead
-// and removed by the compaction that follows.
+// candidate within h_l, a read-only parallel pass). Teams of threads then run over grid cells, not
+// particles (Figure 4): cells are processed in 27 passes, a pass taking every cell whose coordinates
+// are congruent to the pass offset modulo 3 (periodic axes have a cell count divisible by 3 when
+// adaptive, so the pattern holds across the wrap); passes whose cells hold no pair are skipped. The team
+// working on cell A reads and writes only particles in A and its 26 neighbours (A +- 1): the partner
+// search radius h_l <= h0 <= cell side, and the too-close check around the midpoint
+// m = (x_i + x_j)/2 covers |x - m| < min_distance h_{l-1} <= 0.5 h0 with |m - x_i| <= h_l/2, so every
+// particle it touches lies within h0 of x_i, i.e. in A +- 1. Two cells of one pass are at least 3 cells
+// apart on some axis, so their A +- 1 blocks are disjoint: no particle is read by one team while another
+// writes it, and none is consumed twice (eq. 21 with d = ceil(h / L) = 1, stride 2d + 1). Inside a team
+// the cell's particles are taken one at a time in index order, so the outcome does not depend on the
+// team size. The merged particle replaces i at the midpoint (mass-weighted averages: equal masses);
+// j is marked dead and removed by the compaction that follows.
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -111,7 +114,9 @@ struct DecideSplits {
             if (lo < 0.0f || hi > grid.domain[a]) clear = false;
         }
         if (clear) {
-            for_each_neighbor(grid, fluid, xi, ap.h0, [&](uint32_t j, Vec3, float) {
+            // Only particles within |offset| + r_min of the parent can come within r_min of a child.
+            float reach = 0.5f * ap.spacing[l + 1] + r_min;
+            for_each_neighbor(grid, fluid, xi, reach, [&](uint32_t j, Vec3, float) {
                 if (j == i || (flags[j] & kDead)) return;
                 Vec3 xj = xyz(fluid.pos[j]);
                 Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
@@ -125,7 +130,8 @@ struct DecideSplits {
     }
 };
 
-// Write the children of the winners that fit in the capacity. slot[i] = exclusive scan of count.
+// Write the children of the winners that fit in the capacity. slot[i] = inclusive scan of count, so a
+// winner (count 1) has slot[i] - 1 winners before it.
 struct ApplySplits {
     GridGeometry grid;
     AdaptParams ap;
@@ -145,7 +151,8 @@ struct ApplySplits {
     float* cloud;
     PBF_HD void operator()(uint32_t i) const {
         if (!(flags[i] & kSplitNow)) return;
-        uint32_t k = n + slot[i];
+        uint32_t before = slot[i] - 1u;
+        uint32_t k = n + before;
         if (k >= capacity) {  // no room: this winner does not split
             flags[i] &= uint8_t(~kSplitNow);
             return;
@@ -158,7 +165,7 @@ struct ApplySplits {
         pos[i] = make_float4(wrap_position(grid, xyz(p) + off), m_child);
         pos[k] = make_float4(wrap_position(grid, xyz(p) - off), m_child);
         vel[k] = vel[i];
-        id[k] = next_id + slot[i];
+        id[k] = next_id + before;
         density[k] = density[i];
         if (temperature) {
             temperature[k] = temperature[i];
@@ -192,7 +199,10 @@ struct FindMergePartners {
     }
 };
 
-// One pass of the race-free parallel merge: one thread per cell of the pass's colour.
+// One pass of the race-free parallel merge: one team of threads per cell of the pass's colour (a warp on
+// the GPU, one thread on the CPU). The team walks the cell's particles in index order, exactly as one
+// thread would; its lanes share only each midpoint's too-close search and vote on it, and lane 0 writes.
+// The result is therefore the same for any team size.
 struct MergePass {
     GridGeometry grid;
     CellRanges fluid;
@@ -207,13 +217,15 @@ struct MergePass {
     float* temperature;
     float* vapor;
     float* cloud;
-    PBF_HD void operator()(uint32_t t) const {
+    template <class Team>
+    PBF_HD void operator()(uint32_t t, const Team& team) const {
         int ax = int(t % uint32_t(per_axis[0]));
         int ay = int((t / uint32_t(per_axis[0])) % uint32_t(per_axis[1]));
         int az = int(t / (uint32_t(per_axis[0]) * uint32_t(per_axis[1])));
         int c[3] = {offset[0] + 3 * ax, offset[1] + 3 * ay, offset[2] + 3 * az};
         uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
         for (uint32_t i = fluid.start[cell]; i < fluid.end[cell]; ++i) {
+            // Every lane reads the same values here: the only writes are lane 0's, fenced by sync().
             uint8_t fi = flags[i];
             if (!(fi & kMergeCandidate) || (fi & (kDead | kMergedNow))) continue;
             Float4 pi = pos[i];
@@ -224,23 +236,27 @@ struct MergePass {
             Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
             Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
             float r_min = ap.min_distance * radii.h[l - 1];
-            bool clear = true;
-            for_each_in_block(grid, fluid, c, mid, r_min, [&](uint32_t k, Vec3, float) {
-                if (k == i || k == best || (flags[k] & kDead)) return;
-                clear = false;
-            });
-            if (!clear) continue;
-            uint32_t j = best;
-            Float4 vi = vel[i], vj = vel[j];
-            pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
-            vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
-            if (temperature) {
-                temperature[i] = 0.5f * (temperature[i] + temperature[j]);
-                vapor[i] = 0.5f * (vapor[i] + vapor[j]);
-                cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+            bool blocked = false;
+            for_each_in_block_strided(grid, fluid, c, mid, r_min, team.rank(), Team::kSize,
+                                      [&](uint32_t k, Vec3, float) {
+                                          if (k == i || k == best || (flags[k] & kDead)) return;
+                                          blocked = true;
+                                      });
+            if (team.any(blocked)) continue;
+            if (team.rank() == 0) {
+                uint32_t j = best;
+                Float4 vi = vel[i], vj = vel[j];
+                pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
+                vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
+                if (temperature) {
+                    temperature[i] = 0.5f * (temperature[i] + temperature[j]);
+                    vapor[i] = 0.5f * (vapor[i] + vapor[j]);
+                    cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+                }
+                flags[i] = fi | kMergedNow;
+                flags[j] |= kDead;
             }
-            flags[i] = fi | kMergedNow;
-            flags[j] |= kDead;
+            team.sync();
         }
     }
 };

@@ -15,6 +15,31 @@ namespace pbf {
 
 constexpr float kPi = 3.14159265358979323846f;
 
+// A team of threads that works on one item together and shares its loops: one warp of 32 lanes on the
+// GPU, a single thread on the CPU. any() is a vote over the team; sync() makes the writes of every lane
+// visible to the others (both are no-ops for a team of one).
+struct SerialTeam {
+    static constexpr uint32_t kSize = 1;
+    PBF_HD uint32_t rank() const { return 0; }
+    PBF_HD bool any(bool p) const { return p; }
+    PBF_HD void sync() const {}
+};
+
+#if defined(__CUDACC__)
+struct WarpTeam {
+    static constexpr uint32_t kSize = 32;
+    uint32_t lane;
+    PBF_HD uint32_t rank() const { return lane; }
+#if defined(__CUDA_ARCH__)
+    __device__ bool any(bool p) const { return __any_sync(0xffffffffu, p); }
+    __device__ void sync() const { __syncwarp(); }
+#else
+    bool any(bool p) const { return p; }  // host pass of nvcc only; teams run on the device
+    void sync() const {}
+#endif
+};
+#endif
+
 struct Vec3 {
     float x, y, z;
 };

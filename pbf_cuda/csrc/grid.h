@@ -107,9 +107,11 @@ struct CellRanges {
 // |r| < r_max, r = q - x_j (minimum image). Whole cells whose box lies r_max or farther from q are
 // skipped before any of their particles is read (about a quarter of the block when the cell side equals
 // r_max, most of it for a small r_max). Only cells of the block are visited, wherever q lies.
+// The strided form visits only the particles at positions first, first + stride, ... of each cell: a
+// team of `stride` threads (a CUDA warp) shares one search that way, each thread taking its `first`.
 template <class F>
-PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
-                                     float r_max, F&& f) {
+PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
+                                             float r_max, uint32_t first, uint32_t stride, F&& f) {
     const float r2max = r_max * r_max;
     // q relative to the lower corner of cell c, in cells (minimum image on periodic axes).
     float rel[3];
@@ -143,7 +145,7 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
                 if (ey + gap2(0, dx) >= r2max) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 uint32_t b = set.start[cell], e = set.end[cell];
-                for (uint32_t j = b; j < e; ++j) {
+                for (uint32_t j = b + first; j < e; j += stride) {
                     Float4 pj = set.pos[j];
                     Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
                     float r2 = dot(r, r);
@@ -152,6 +154,12 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
             }
         }
     }
+}
+
+template <class F>
+PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
+                                     float r_max, F&& f) {
+    for_each_in_block_strided(g, set, c, q, r_max, 0u, 1u, f);
 }
 
 // Calls f(j, r_ij, r2) for every particle j of `set` with |r_ij| < r_max (r_ij = x_i - x_j,

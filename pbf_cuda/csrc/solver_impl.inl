@@ -64,6 +64,37 @@ void parallel_for(std::size_t n, const F& f) {
                      thrust::counting_iterator<uint32_t>(uint32_t(n)), f);
 }
 
+// f(t, team) for t in [0, n): one team per item (common.h), a warp on the GPU, a thread on the CPU.
+#ifdef PBF_BACKEND_CUDA
+template <class F>
+__global__ void team_kernel(uint32_t n, F f) {
+    uint32_t t = (blockIdx.x * blockDim.x + threadIdx.x) / WarpTeam::kSize;
+    if (t >= n) return;  // whole warps leave together: blockDim is a multiple of the warp size
+    f(t, WarpTeam{threadIdx.x % WarpTeam::kSize});
+}
+
+template <class F>
+void parallel_for_teams(std::size_t n, const F& f) {
+    if (n == 0) return;
+    const unsigned block = 128;
+    std::size_t threads = n * WarpTeam::kSize;
+    team_kernel<<<unsigned((threads + block - 1) / block), block>>>(uint32_t(n), f);
+    cudaError_t err = cudaGetLastError();
+    if (err != cudaSuccess) throw std::runtime_error(std::string("team kernel launch: ") + cudaGetErrorString(err));
+}
+#else
+template <class F>
+struct AsSerialTeam {
+    F f;
+    void operator()(uint32_t t) const { f(t, SerialTeam{}); }
+};
+
+template <class F>
+void parallel_for_teams(std::size_t n, const F& f) {
+    parallel_for(n, AsSerialTeam<F>{f});
+}
+#endif
+
 // ---- phase timers: CUDA events on the GPU, steady clock on the CPU ------------------------------
 #ifdef PBF_BACKEND_CUDA
 class PhaseClock {
@@ -238,6 +269,25 @@ struct ParticleCheck {
 struct IsBad {
     ParticleCheck check;
     PBF_HD bool operator()(uint32_t i) const { return check.is_bad(i); }
+};
+
+// Bit (cx % 3) + 3 (cy % 3) + 9 (cz % 3) of the merge pass that holds particle i's cell, when i has a
+// merge partner (0 otherwise); OR-reduced to skip passes with nothing to merge.
+struct MergePassBit {
+    GridGeometry g;
+    const uint32_t* keys;
+    const uint32_t* partner;
+    PBF_HD uint32_t operator()(uint32_t i) const {
+        if (partner[i] == 0xffffffffu) return 0u;
+        uint32_t k = keys[i];
+        uint32_t cx = k % uint32_t(g.dims[0]), cy = (k / uint32_t(g.dims[0])) % uint32_t(g.dims[1]);
+        uint32_t cz = k / (uint32_t(g.dims[0]) * uint32_t(g.dims[1]));
+        return 1u << ((cx % 3) + 3 * (cy % 3) + 9 * (cz % 3));
+    }
+};
+
+struct BitOr {
+    PBF_HD uint32_t operator()(uint32_t a, uint32_t b) const { return a | b; }
 };
 
 struct IsAlive {
@@ -606,9 +656,13 @@ private:
         CellRanges fl = fluid_ranges(pos_);
         parallel_for(n_, FindMergePartners{grid_, fl, radii_, raw(flags_), raw(merge_partner_)});
         clock_.begin(kPhaseMergePasses);
+        uint32_t passes_with_work = thrust::transform_reduce(
+            thrust::device, thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n_)),
+            MergePassBit{grid_, raw(keys_), raw(merge_partner_)}, 0u, BitOr{});
         for (int oz = 0; oz < 3; ++oz)
             for (int oy = 0; oy < 3; ++oy)
                 for (int ox = 0; ox < 3; ++ox) {
+                    if (!(passes_with_work & (1u << (ox + 3 * oy + 9 * oz)))) continue;
                     int off[3] = {ox, oy, oz};
                     MergePass mp{grid_, fl, ap_, radii_, {ox, oy, oz}, {0, 0, 0}, raw(merge_partner_), raw(flags_),
                                  raw(pos_), raw(vel_),
@@ -620,7 +674,7 @@ private:
                         mp.per_axis[a] = cnt;
                         threads *= std::size_t(cnt);
                     }
-                    parallel_for(threads, mp);
+                    parallel_for_teams(threads, mp);
                 }
         clock_.end(kPhaseMergePasses);
         clock_.end(kPhaseMerging);
@@ -628,13 +682,9 @@ private:
         clock_.begin(kPhaseSplitting);
         parallel_for(n_, DecideSplits{grid_, fl, ap_, radii_, raw(energy_), raw(id_), raw(flags_),
                                       raw(split_count_), uint32_t(step_)});
-        thrust::exclusive_scan(thrust::device, split_count_.begin(), split_count_.begin() + n_, split_slot_.begin());
-        uint32_t last_slot = 0, last_count = 0;
-        if (n_) {
-            last_slot = split_slot_[n_ - 1];
-            last_count = split_count_[n_ - 1];
-        }
-        std::size_t winners = std::size_t(last_slot) + last_count;
+        // Inclusive scan: one read of its last element gives the number of winners.
+        thrust::inclusive_scan(thrust::device, split_count_.begin(), split_count_.begin() + n_, split_slot_.begin());
+        std::size_t winners = n_ ? std::size_t(uint32_t(split_slot_[n_ - 1])) : 0;
         std::size_t room = capacity_ - n_;
         std::size_t splits = std::min(winners, room);
         if (winners) {
