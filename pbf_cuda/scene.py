@@ -139,8 +139,9 @@ class Adaptive:
     split_threshold: float = _spec(0.3, 0.0, 1e9, "", "split when E > this (alpha)")
     merge_threshold: float = _spec(0.05, 0.0, 1e9, "", "merge when E < this (beta)")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
-    min_distance: float = _spec(0.35, 0.0, 2.0, "",
-                                "no particle within this times the child's kernel radius of a new particle")
+    min_distance: float = _spec(0.35, 0.0, 0.5, "",
+                                "no particle within this times the new particle's kernel radius of it; at most "
+                                "0.5, so the check stays inside one cell block (see adaptivity.h)")
 
 
 @dataclass

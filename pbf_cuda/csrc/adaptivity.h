@@ -7,7 +7,8 @@
 // hash of id and step) lies within the conflict radius, so children of two parents splitting in the
 // same step never come closer than the threshold, and (b) no existing particle other than the parent
 // lies within min_distance * h_{l+1} of either child (only particles within |offset| + r_min of the
-// parent can). Winners get slots from a prefix sum; the parent's slot holds child 1, slot
+// parent can). The candidates are first gathered into a list (index order); one team per candidate
+// decides. Winners get slots from a prefix sum over the list; the parent's slot holds child 1, slot
 // n + (winners before it) holds child 2. With the capacity full, the winners that fit split and the
 // rest are counted as rejected.
 //
@@ -21,7 +22,10 @@
 // m = (x_i + x_j)/2 covers |x - m| < min_distance h_{l-1} <= 0.5 h0 with |m - x_i| <= h_l/2, so every
 // particle it touches lies within h0 of x_i, i.e. in A +- 1. Two cells of one pass are at least 3 cells
 // apart on some axis, so their A +- 1 blocks are disjoint: no particle is read by one team while another
-// writes it, and none is consumed twice (eq. 21 with d = ceil(h / L) = 1, stride 2d + 1). Inside a team
+// writes it, and none is consumed twice (eq. 21 with d = ceil(h / L) = 1, stride 2d + 1). Particles
+// merged earlier in the step sit at their midpoints, up to h_1 / 2 outside the cell they were sorted
+// into, so the too-close searches (here and for splits) prune cells with that slack; such a particle
+// is seen whenever its cell lies in the block (min_distance <= 0.5 is enforced by the scene). Inside a team
 // the cell's particles are taken one at a time in index order, so the outcome does not depend on the
 // team size. The merged particle replaces i at the midpoint (mass-weighted averages: equal masses);
 // j is marked dead and removed by the compaction that follows.
@@ -70,21 +74,26 @@ PBF_INLINE Vec3 split_direction(uint32_t id, uint32_t step) {
     return Vec3{r * cosf(phi), u, r * sinf(phi)};
 }
 
-// Decide which split candidates split this step; writes kSplitNow and count[i] (0 or 1).
+// Decide which split candidates split this step: one team per candidate (a warp on the GPU), its lanes
+// sharing the two neighbour searches and voting. candidates[t] is the t-th candidate in index order;
+// writes count[t] (0 or 1) and kSplitNow.
 struct DecideSplits {
     GridGeometry grid;
     CellRanges fluid;
     AdaptParams ap;
     LevelRadii radii;
+    const uint32_t* candidates;
     const float* energy;
     const uint32_t* id;
     uint8_t* flags;
     uint32_t* count;
     uint32_t step;
-    PBF_HD void operator()(uint32_t i) const {
-        count[i] = 0;
+    template <class Team>
+    PBF_HD void operator()(uint32_t t, const Team& team) const {
+        uint32_t i = candidates[t];
+        if (team.rank() == 0) count[t] = 0;
         uint8_t fi = flags[i];
-        if (!(fi & kSplitCandidate) || (fi & (kDead | kMergedNow))) return;
+        if (fi & (kDead | kMergedNow)) return;
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         int l = radii.level_of_mass(pi.w);
@@ -93,45 +102,48 @@ struct DecideSplits {
         // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
         // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
         uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
-        bool win = true;
-        for_each_neighbor(grid, fluid, xi, ap.conflict_radius, [&](uint32_t j, Vec3, float) {
+        bool lost = false;
+        // Split candidates have not moved since the sort (merges move merge candidates only): no slack.
+        for_each_neighbor_strided(grid, fluid, xi, ap.conflict_radius, 0.0f, team.rank(), Team::kSize,
+                                  [&](uint32_t j, Vec3, float) {
             if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
             float ej = energy[j];
             uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
-            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) win = false;
+            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) lost = true;
         });
-        if (!win) return;
+        if (team.any(lost)) return;
         Vec3 n = split_direction(idi, step);
         Vec3 off = (0.5f * ap.spacing[l + 1]) * n;
         Vec3 c1 = xi + off, c2 = xi - off;
         float r_min = ap.min_distance * radii.h[l + 1];
         float r2_min = r_min * r_min;
-        bool clear = true;
         // Children must stay inside the walls.
         for (int a = 0; a < 3; ++a) {
             if (grid.periodic[a]) continue;
             float lo = fminf(component(c1, a), component(c2, a)), hi = fmaxf(component(c1, a), component(c2, a));
-            if (lo < 0.0f || hi > grid.domain[a]) clear = false;
+            if (lo < 0.0f || hi > grid.domain[a]) return;
         }
-        if (clear) {
-            // Only particles within |offset| + r_min of the parent can come within r_min of a child.
-            float reach = 0.5f * ap.spacing[l + 1] + r_min;
-            for_each_neighbor(grid, fluid, xi, reach, [&](uint32_t j, Vec3, float) {
-                if (j == i || (flags[j] & kDead)) return;
-                Vec3 xj = xyz(fluid.pos[j]);
-                Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
-                if (dot(d1, d1) < r2_min || dot(d2, d2) < r2_min) clear = false;
-            });
-        }
-        if (clear) {
-            count[i] = 1;
+        // Only particles within |offset| + r_min of the parent can come within r_min of a child. Merged
+        // particles of this step sit at their midpoints, possibly outside their cell's box: slack.
+        float reach = 0.5f * ap.spacing[l + 1] + r_min;
+        bool blocked = false;
+        for_each_neighbor_strided(grid, fluid, xi, reach, radii.moved_slack(), team.rank(), Team::kSize,
+                                  [&](uint32_t j, Vec3, float) {
+            if (j == i || (flags[j] & kDead)) return;
+            Vec3 xj = xyz(fluid.pos[j]);
+            Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
+            if (dot(d1, d1) < r2_min || dot(d2, d2) < r2_min) blocked = true;
+        });
+        if (team.any(blocked)) return;
+        if (team.rank() == 0) {
+            count[t] = 1;
             flags[i] = fi | kSplitNow;
         }
     }
 };
 
-// Write the children of the winners that fit in the capacity. slot[i] = inclusive scan of count, so a
-// winner (count 1) has slot[i] - 1 winners before it.
+// Write the children of the winners that fit in the capacity, one thread per candidate.
+// slot[t] = inclusive scan of count, so a winner (count 1) has slot[t] - 1 winners before it.
 struct ApplySplits {
     GridGeometry grid;
     AdaptParams ap;
@@ -140,6 +152,7 @@ struct ApplySplits {
     uint32_t capacity;
     uint32_t next_id;
     uint32_t step;
+    const uint32_t* candidates;
     const uint32_t* slot;
     uint8_t* flags;
     Float4* pos;
@@ -149,9 +162,10 @@ struct ApplySplits {
     float* temperature;    // nullptr when no thermodynamics
     float* vapor;
     float* cloud;
-    PBF_HD void operator()(uint32_t i) const {
+    PBF_HD void operator()(uint32_t t) const {
+        uint32_t i = candidates[t];
         if (!(flags[i] & kSplitNow)) return;
-        uint32_t before = slot[i] - 1u;
+        uint32_t before = slot[t] - 1u;
         uint32_t k = n + before;
         if (k >= capacity) {  // no room: this winner does not split
             flags[i] &= uint8_t(~kSplitNow);
@@ -237,7 +251,7 @@ struct MergePass {
             Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
             float r_min = ap.min_distance * radii.h[l - 1];
             bool blocked = false;
-            for_each_in_block_strided(grid, fluid, c, mid, r_min, team.rank(), Team::kSize,
+            for_each_in_block_strided(grid, fluid, c, mid, r_min, radii.moved_slack(), team.rank(), Team::kSize,
                                       [&](uint32_t k, Vec3, float) {
                                           if (k == i || k == best || (flags[k] & kDead)) return;
                                           blocked = true;

@@ -107,12 +107,15 @@ struct CellRanges {
 // |r| < r_max, r = q - x_j (minimum image). Whole cells whose box lies r_max or farther from q are
 // skipped before any of their particles is read (about a quarter of the block when the cell side equals
 // r_max, most of it for a small r_max). Only cells of the block are visited, wherever q lies.
-// The strided form visits only the particles at positions first, first + stride, ... of each cell: a
-// team of `stride` threads (a CUDA warp) shares one search that way, each thread taking its `first`.
+// The general form takes two more things. `slack` (m) widens the cell pruning (not the hit test) for
+// particles that may have left their cell's box since the sort, e.g. merged particles moved to their
+// midpoint. `first`/`stride` visit only the particles at positions first, first + stride, ... of each
+// cell: a team of `stride` threads (a CUDA warp) shares one search that way, each taking its `first`.
 template <class F>
 PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
-                                             float r_max, uint32_t first, uint32_t stride, F&& f) {
+                                             float r_max, float slack, uint32_t first, uint32_t stride, F&& f) {
     const float r2max = r_max * r_max;
+    const float r2prune = (r_max + slack) * (r_max + slack);
     // q relative to the lower corner of cell c, in cells (minimum image on periodic axes).
     float rel[3];
     for (int a = 0; a < 3; ++a) {
@@ -131,18 +134,18 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
         if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
         else if (cz < 0 || cz >= g.dims[2]) continue;
         float ez = gap2(2, dz);
-        if (ez >= r2max) continue;
+        if (ez >= r2prune) continue;
         for (int dy = -1; dy <= 1; ++dy) {
             int cy = c[1] + dy;
             if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
             else if (cy < 0 || cy >= g.dims[1]) continue;
             float ey = ez + gap2(1, dy);
-            if (ey >= r2max) continue;
+            if (ey >= r2prune) continue;
             for (int dx = -1; dx <= 1; ++dx) {
                 int cx = c[0] + dx;
                 if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
                 else if (cx < 0 || cx >= g.dims[0]) continue;
-                if (ey + gap2(0, dx) >= r2max) continue;
+                if (ey + gap2(0, dx) >= r2prune) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 uint32_t b = set.start[cell], e = set.end[cell];
                 for (uint32_t j = b + first; j < e; j += stride) {
@@ -159,7 +162,7 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
 template <class F>
 PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
                                      float r_max, F&& f) {
-    for_each_in_block_strided(g, set, c, q, r_max, 0u, 1u, f);
+    for_each_in_block_strided(g, set, c, q, r_max, 0.0f, 0u, 1u, f);
 }
 
 // Calls f(j, r_ij, r2) for every particle j of `set` with |r_ij| < r_max (r_ij = x_i - x_j,
@@ -168,6 +171,14 @@ template <class F>
 PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max, F&& f) {
     int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
     for_each_in_block(g, set, c, xi, r_max, f);
+}
+
+// for_each_neighbor with the slack and team striding of for_each_in_block_strided.
+template <class F>
+PBF_HD inline void for_each_neighbor_strided(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max,
+                                             float slack, uint32_t first, uint32_t stride, F&& f) {
+    int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
+    for_each_in_block_strided(g, set, c, xi, r_max, slack, first, stride, f);
 }
 
 }  // namespace pbf

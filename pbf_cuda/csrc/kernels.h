@@ -32,13 +32,19 @@ PBF_INLINE Vec3 spiky_gradient(Vec3 r, float r2, float h) {
 struct LevelRadii {
     float h[kMaxLevels];
     float m0;
+    // m = m0 2^-l exactly, so l is the difference of the binary exponents; no division, which
+    // --use_fast_math would make approximate (m0 / m0 = 0.99999994 reads as level 1).
     PBF_HD int level_of_mass(float m) const {
-        int e;
-        frexpf(m / m0, &e);  // m/m0 = 2^-l = 0.5 * 2^(1-l)
-        int l = 1 - e;
+        int e, e0;
+        frexpf(m, &e);
+        frexpf(m0, &e0);
+        int l = e0 - e;
         return l < 0 ? 0 : (l >= kMaxLevels ? kMaxLevels - 1 : l);
     }
     PBF_HD float radius_of_mass(float m) const { return h[level_of_mass(m)]; }
+    // How far a merged particle can sit outside the cell it was sorted into: it moves to the midpoint
+    // of a pair within h_l of each other (l >= 1), i.e. by at most h_1 / 2.
+    PBF_HD float moved_slack() const { return 0.5f * h[1]; }
 };
 
 inline LevelRadii make_level_radii(float h0, float m0) {

@@ -295,6 +295,12 @@ struct IsAlive {
     PBF_HD bool operator()(uint32_t i) const { return !(flags[i] & kDead); }
 };
 
+struct HasFlag {
+    const uint8_t* flags;
+    uint8_t flag;
+    PBF_HD bool operator()(uint32_t i) const { return (flags[i] & flag) != 0; }
+};
+
 // ---- the solver ---------------------------------------------------------------------------------
 class Solver final : public ISolver {
 public:
@@ -536,6 +542,7 @@ private:
         }
         if (p_.adaptive) {
             flags_.resize(cap); energy_.resize(cap); split_count_.resize(cap); split_slot_.resize(cap);
+            split_candidates_.resize(cap);
             merge_partner_.resize(cap);
         }
     }
@@ -680,18 +687,28 @@ private:
         clock_.end(kPhaseMerging);
 
         clock_.begin(kPhaseSplitting);
-        parallel_for(n_, DecideSplits{grid_, fl, ap_, radii_, raw(energy_), raw(id_), raw(flags_),
-                                      raw(split_count_), uint32_t(step_)});
-        // Inclusive scan: one read of its last element gives the number of winners.
-        thrust::inclusive_scan(thrust::device, split_count_.begin(), split_count_.begin() + n_, split_slot_.begin());
-        std::size_t winners = n_ ? std::size_t(uint32_t(split_slot_[n_ - 1])) : 0;
+        // Gather the split candidates (index order), decide with one team each, then give slots.
+        auto cand_end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                        thrust::counting_iterator<uint32_t>(uint32_t(n_)), split_candidates_.begin(),
+                                        HasFlag{raw(flags_), kSplitCandidate});
+        std::size_t candidates = std::size_t(cand_end - split_candidates_.begin());
+        std::size_t winners = 0;
+        if (candidates) {
+            parallel_for_teams(candidates, DecideSplits{grid_, fl, ap_, radii_, raw(split_candidates_), raw(energy_),
+                                                        raw(id_), raw(flags_), raw(split_count_), uint32_t(step_)});
+            // Inclusive scan: one read of its last element gives the number of winners.
+            thrust::inclusive_scan(thrust::device, split_count_.begin(), split_count_.begin() + candidates,
+                                   split_slot_.begin());
+            winners = std::size_t(uint32_t(split_slot_[candidates - 1]));
+        }
         std::size_t room = capacity_ - n_;
         std::size_t splits = std::min(winners, room);
         if (winners) {
-            parallel_for(n_, ApplySplits{grid_, ap_, radii_, uint32_t(n_), uint32_t(capacity_), next_id_,
-                                         uint32_t(step_), raw(split_slot_), raw(flags_), raw(pos_), raw(vel_),
-                                         raw(id_), raw(density_), thermo ? raw(temperature_) : nullptr,
-                                         thermo ? raw(vapor_) : nullptr, thermo ? raw(cloud_) : nullptr});
+            parallel_for(candidates, ApplySplits{grid_, ap_, radii_, uint32_t(n_), uint32_t(capacity_), next_id_,
+                                                 uint32_t(step_), raw(split_candidates_), raw(split_slot_),
+                                                 raw(flags_), raw(pos_), raw(vel_), raw(id_), raw(density_),
+                                                 thermo ? raw(temperature_) : nullptr, thermo ? raw(vapor_) : nullptr,
+                                                 thermo ? raw(cloud_) : nullptr});
         }
         next_id_ += uint32_t(splits);
         n_ += splits;
@@ -788,7 +805,7 @@ private:
     dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
     dvec<uint8_t> flags_;
     dvec<float> energy_;
-    dvec<uint32_t> split_count_, split_slot_, merge_partner_;
+    dvec<uint32_t> split_count_, split_slot_, split_candidates_, merge_partner_;
     dvec<Float4> bpos_;
     dvec<float> btemperature_, bvapor_, bcloud_;
     dvec<uint32_t> bstart_, bend_;
