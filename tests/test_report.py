@@ -51,6 +51,11 @@ def write_synthetic_study(out, renders=True):
     pd.DataFrame({"particles": [250_000, 1_000_000, 4_000_000], "iterations": 4,
                   "step_ms": [3.0, 11.0, 45.0], "neighbors_ms": [1.0, 4.0, 17.0], "solver_ms": [1.5, 5.5, 23.0],
                   "device": DEVICE, "commit": COMMIT}).to_csv(data / "pbf_scaling.csv", index=False)
+    pd.DataFrame({"scene": ["growing_adaptive"], "spacing_m": [45.0], "mean_particles": [480_000.0],
+                  "max_particles": [600_000], "splitting_ms": [0.1], "merging_ms": [0.5], "merge_passes_ms": [0.3],
+                  "compaction_ms": [0.1], "pbf_ms": [11.0], "split_target_ms": [0.3], "merge_target_ms": [1.0],
+                  "meets_targets": [True], "device": DEVICE, "commit": COMMIT}).to_csv(data / "adaptive_cost.csv",
+                                                                                       index=False)
     pd.DataFrame({"cells": [32**3, 64**3, 128**3], "step_ms": [5.0, 38.0, 310.0], "dtype": "float64",
                   "device": DEVICE, "commit": COMMIT}).to_csv(data / "grid_scaling.csv", index=False)
     series, profiles = [], []

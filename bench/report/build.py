@@ -9,6 +9,7 @@ produces it; nothing is ever filled in.
     OUT/data/environment.json        device, backend, commit, date, python, versions, scale
     OUT/data/table1.csv              example,figure,mode,max_particles,<phase>_ms...,total_ms,device,commit
     OUT/data/pbf_scaling.csv         particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit
+    OUT/data/adaptive_cost.csv       scene,spacing_m,mean_particles,max_particles,splitting_ms,merging_ms,...
     OUT/data/grid_scaling.csv        cells,step_ms,dtype,device,commit
     OUT/data/compare_timeseries.csv  solver,mode,seed,time_s, diagnostics (bench.statistics)
     OUT/data/compare_profiles.csv    solver,mode,seed,time_s,z,cloud_fraction,temperature,vapor,cloud
@@ -62,6 +63,7 @@ COMMANDS = {
     "table1": "cloudpbf table1 --out {out}",
     "pbf_scaling": "cloudpbf scaling --out {out}",
     "grid_scaling": "python -m bench.grid_scaling --sizes 32 64 128 --out {out}/data/grid_scaling.csv",
+    "adaptive_cost": "python -m bench.studies.adaptive_cost --spacing 45 --out {out}/data/adaptive_cost.csv",
     "compare": "cloudpbf compare growing --out {out}",
     "sweep": "cloudpbf sweep --out {out}",
     "stress": "cloudpbf stress --out {out}",
@@ -322,6 +324,18 @@ def _phases(inp: Inputs, sec: Section, env: dict | None) -> None:
         if f"{p}_ms" in measured.columns and measured[f"{p}_ms"].notna().any():
             shares[f"{p} %"] = 100.0 * pd.to_numeric(measured[f"{p}_ms"], errors="coerce") / total
     sec.add("table", _table(shares, "{:.1f}"), caption="share of each phase in the measured step time (%)")
+    cost, cost_path = inp.csv("adaptive_cost")
+    if cost is None:
+        _missing(sec, "adaptive_cost.csv (splitting and merging at ~500k adaptive particles, GPU)", "adaptive_cost",
+                 inp.out)
+    else:
+        cols = [c for c in ("scene", "spacing_m", "mean_particles", "max_particles", "splitting_ms", "merging_ms",
+                            "merge_passes_ms", "compaction_ms", "pbf_ms", "split_target_ms", "merge_target_ms",
+                            "meets_targets", "device", "commit") if c in cost.columns]
+        sec.add("table", _table(cost[cols]), caption=(
+            f"Splitting and merging at the size of the targets, from {cost_path.name}: ms per step over the whole "
+            "run (merge_passes and compaction are parts of merging; pbf is the same run's constraint solve). "
+            "meets_targets is left empty off the GPU or below 400k particles."))
     sec.provenance = _provenance(measured, env=env)
 
 
