@@ -221,3 +221,16 @@ def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):
     again = adaptive_cost(["growing_adaptive"], spacing=200.0, steps=12, backend="cpu", runs_root=tmp_path,
                           quiet=True)
     assert again.iloc[0]["run_dir"] == row["run_dir"] and again.iloc[0]["splitting_ms"] == row["splitting_ms"]
+
+
+def test_cover_summary_finds_onset_and_a_vanish_and_return():
+    from bench.studies.constant_gravity import cover_summary
+    t = np.arange(8) * 10.0
+    steady = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": [0, 0, .1, .3, .4, .4, .5, .5]}))
+    assert steady == {"first_cloud_s": 20.0, "max_cover": 0.5, "final_cover": 0.5, "vanished_and_returned": False}
+    cycle = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": [0, .2, .3, 0, 0, .1, .2, 0]}))
+    assert cycle["first_cloud_s"] == 10.0 and cycle["vanished_and_returned"]
+    gone = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": [0, .2, .3, 0, 0, 0, 0, 0]}))
+    assert not gone["vanished_and_returned"] and gone["final_cover"] == 0
+    never = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": np.zeros(8)}))
+    assert never["first_cloud_s"] is None and never["max_cover"] == 0
