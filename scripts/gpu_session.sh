@@ -33,6 +33,8 @@ for step in "$@"; do
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
     adaptive_cost) timeout 300 python3 -m bench.studies.adaptive_cost --spacing 45 --steps 500 --quiet \
                      --out "$R/data/adaptive_cost.csv" ;;
+    constant_gravity) timeout 400 python3 -m bench.studies.constant_gravity --gravity 0.1 0.3 1.0 --quiet \
+                        --out "$R/data/constant_gravity.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
