@@ -90,6 +90,12 @@ def write_synthetic_study(out, renders=True):
         ("heating_rate", 5.0, False, "NaN in temperature", 3, 4096, 9.0, 0.02),
     ], columns=["parameter", "value", "stable", "reason", "step", "particles", "max_speed", "density_error_mean"]
     ).assign(device=DEVICE, commit=COMMIT).to_csv(data / "stress.csv", index=False)
+    pd.DataFrame({"case": ["cycling (shipped)", "growing + g_c = 0.1"], "constant_gravity": [0.0, 0.1],
+                  "cloud_gravity": [196.2, 9.81], "particles": [8000, 8000], "stable": [True, True],
+                  "reason": [None, None], "first_cloud_s": [220.0, 100.0], "max_cover": [0.9, 1.0],
+                  "final_cover": [0.85, 1.0], "vanished_and_returned": [False, False],
+                  "density_error_mean": [0.02, 0.07], "max_speed": [13.0, 48.0], "device": DEVICE,
+                  "commit": COMMIT}).to_csv(data / "constant_gravity.csv", index=False)
     if renders:
         import matplotlib.pyplot as plt
         for name in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",

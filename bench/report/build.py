@@ -14,6 +14,7 @@ produces it; nothing is ever filled in.
     OUT/data/compare_timeseries.csv  solver,mode,seed,time_s, diagnostics (bench.statistics)
     OUT/data/compare_profiles.csv    solver,mode,seed,time_s,z,cloud_fraction,temperature,vapor,cloud
     OUT/data/sweep.csv               method,parameter,value,wall_s,error_self,error_other,...
+    OUT/data/constant_gravity.csv    case,constant_gravity,cloud_gravity,particles,stable,...,final_cover
     OUT/data/stress.csv              parameter,value,stable,reason,step,particles,max_speed,density_error_mean
     OUT/data/renders/*.png           clouds_particles, clouds_volume, figure1_unsmoothed, figure1_smoothed,
                                      figure3_shape_energy (NAME.unavailable.txt: why a render is missing)
@@ -64,6 +65,7 @@ COMMANDS = {
     "pbf_scaling": "cloudpbf scaling --out {out}",
     "grid_scaling": "python -m bench.grid_scaling --sizes 32 64 128 --out {out}/data/grid_scaling.csv",
     "adaptive_cost": "python -m bench.studies.adaptive_cost --spacing 45 --out {out}/data/adaptive_cost.csv",
+    "constant_gravity": "python -m bench.studies.constant_gravity --out {out}/data/constant_gravity.csv",
     "compare": "cloudpbf compare growing --out {out}",
     "sweep": "cloudpbf sweep --out {out}",
     "stress": "cloudpbf stress --out {out}",
@@ -564,6 +566,18 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns])),
             caption="all cases (an unstable run is stopped at the step the check caught it; its NaN never "
                     "enters the statistics)")
+    gravity, gravity_path = inp.csv("constant_gravity")
+    if gravity is None:
+        _missing(sec, "constant_gravity.csv (paper example 2: a constant gravity on the whole domain)",
+                 "constant_gravity", inp.out)
+    else:
+        cols = [c for c in ("case", "constant_gravity", "cloud_gravity", "particles", "stable", "reason",
+                            "first_cloud_s", "max_cover", "final_cover", "vanished_and_returned",
+                            "density_error_mean", "max_speed") if c in gravity.columns]
+        sec.add("table", _table(gravity[cols]), caption=(
+            f"A constant gravity g_c (m/s^2) added to every particle of the growing scene, beside the shipped "
+            f"cycling scene, from {gravity_path.name}: cloud cover (fraction of columns) and the last step's "
+            "density error and largest speed (m/s)."))
     sec.provenance = _provenance(df, env=env)
 
 
