@@ -12,7 +12,7 @@ from ``checkpoint.npz`` when an earlier attempt was interrupted, and otherwise r
 Layout of ``ROOT/<solver>-<scene>-<key16>/``::
 
     config.json        the spec and its identity (everything hashed into the key)
-    log.txt            start, resume, checkpoints, instability, finish (appended)
+    log.txt            start, resume, checkpoints, adaptive capacity full, instability, finish (appended)
     timings.csv        phase,total_ms,count,mean_ms (wall time per phase after the warm-up steps)
     stats.parquet      one row per diagnostic step: bench.statistics diagnostics (+ solver stats())
     profiles.parquet   vertical profiles per diagnostic step (long format), when the statistics give them
@@ -708,6 +708,7 @@ class _Run:
                 row = self.adapter.step_row(sim)
                 self.adapter.check(sim, spec, row)
                 max_particles = max(max_particles, self.adapter.size(sim))
+                self._note_capacity(sim, row)
                 if spec.record_steps:
                     self.step_rows.append(row)
                 if s == spec.warmup_steps:
@@ -734,6 +735,21 @@ class _Run:
         return self._finish(sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                             time.perf_counter() - started)
 
+    def _note_capacity(self, sim, row: dict) -> None:
+        """Log (and print) when the adaptive capacity first turns splits away, then each tenfold growth."""
+        rejects = int(row.get("split_capacity_rejects", 0) or 0)
+        logged = getattr(self, "_rejects_logged", 0)
+        if rejects > 0 and (logged == 0 or rejects >= 10 * logged):
+            message = (f"adaptive capacity full at step {sim.step_count}: {rejects} split(s) turned away so far "
+                       f"({getattr(sim, 'capacity', '?')} particle slots, adaptive.capacity = "
+                       f"{sim.scene.adaptive.capacity}); the run goes on without them")
+            self.log(message)
+            if not self.quiet:
+                from tqdm.auto import tqdm
+                tqdm.write(f"warning: {message}")
+            self._rejects_logged = rejects
+        self._last_rejects = rejects
+
     def _finish(self, sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                 wall) -> RunResult:
         import pandas as pd
@@ -758,6 +774,7 @@ class _Run:
             "last_good_step": sim.step_count if failure is None else failure.last_good_step,
             "time_s": float(sim.time) if failure is None else None,
             "max_particles": max_particles if spec.solver == "particles" else None,
+            "split_capacity_rejects": getattr(self, "_last_rejects", 0) if spec.solver == "particles" else None,
             "cells": max_particles if spec.solver == "grid" else None,
             "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
             "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,

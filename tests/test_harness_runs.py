@@ -242,3 +242,17 @@ def test_real_solver_instability_is_recorded_without_nan(tmp_path):
     assert steps["step"].max() < res.step and np.isfinite(steps.select_dtypes("number").to_numpy()).all()
     if "escaping" not in res.reason:
         assert res.particles                                                  # the solver names them
+
+
+def test_full_adaptive_capacity_is_logged_and_the_run_goes_on(tmp_path):
+    _solver_or_skip()
+    from pbf_cuda.scene import load_scene
+    scene = load_scene("growing_adaptive", **{
+        "domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "atmosphere.initial_vapor_ratio": 1.2,
+        "adaptive.capacity": 1.0, "time.steps": 4, "time.snapshot_every": 2})
+    res = runs.execute(runs.RunSpec("particles", scene, backend="cpu", seed=0, diagnostics=False), tmp_path,
+                       quiet=True)
+    assert res.stable and res.step == 4
+    assert res.split_capacity_rejects > 0
+    log = (res.path / "log.txt").read_text()
+    assert "adaptive capacity full at step" in log and "adaptive.capacity = 1.0" in log
