@@ -596,6 +596,8 @@ class _Run:
         self.adapter = ADAPTERS[spec.solver]
         self.quiet, self.on_step = quiet, on_step
         self.partial = directory / "partial"
+        self.rejects_logged = 0      # split_capacity_rejects at the last capacity warning
+        self.rejects = 0             # split_capacity_rejects after the latest step
 
     def log(self, message: str) -> None:
         with open(self.dir / "log.txt", "a") as fh:
@@ -738,17 +740,17 @@ class _Run:
     def _note_capacity(self, sim, row: dict) -> None:
         """Log (and print) when the adaptive capacity first turns splits away, then each tenfold growth."""
         rejects = int(row.get("split_capacity_rejects", 0) or 0)
-        logged = getattr(self, "_rejects_logged", 0)
+        logged = self.rejects_logged
         if rejects > 0 and (logged == 0 or rejects >= 10 * logged):
             message = (f"adaptive capacity full at step {sim.step_count}: {rejects} split(s) turned away so far "
-                       f"({getattr(sim, 'capacity', '?')} particle slots, adaptive.capacity = "
+                       f"({sim.capacity} particle slots, adaptive.capacity = "
                        f"{sim.scene.adaptive.capacity}); the run goes on without them")
             self.log(message)
             if not self.quiet:
                 from tqdm.auto import tqdm
                 tqdm.write(f"warning: {message}")
-            self._rejects_logged = rejects
-        self._last_rejects = rejects
+            self.rejects_logged = rejects
+        self.rejects = rejects
 
     def _finish(self, sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                 wall) -> RunResult:
@@ -774,7 +776,7 @@ class _Run:
             "last_good_step": sim.step_count if failure is None else failure.last_good_step,
             "time_s": float(sim.time) if failure is None else None,
             "max_particles": max_particles if spec.solver == "particles" else None,
-            "split_capacity_rejects": getattr(self, "_last_rejects", 0) if spec.solver == "particles" else None,
+            "split_capacity_rejects": self.rejects if spec.solver == "particles" else None,
             "cells": max_particles if spec.solver == "grid" else None,
             "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
             "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,

@@ -89,6 +89,10 @@ def main(argv=None) -> int:
     bad = [g for g in args.gravity if not 0.0 < g <= 100.0]
     if bad:
         parser.error(f"--gravity {bad[0]}: allowed range (0, 100] m/s^2")
+    if args.particles is not None and not 100 <= args.particles <= 1_000_000_000:
+        parser.error(f"--particles {args.particles}: allowed range [100, 1000000000]")
+    if args.steps is not None and not 1 <= args.steps <= 10_000_000:
+        parser.error(f"--steps {args.steps}: allowed range [1, 10000000]")
     frame = constant_gravity(args.gravity, args.particles, args.steps, backend=args.backend,
                              runs_root=args.runs_root, quiet=args.quiet)
     runs.write_csv(frame, args.out)

@@ -61,6 +61,13 @@ PBF_INLINE uint32_t cell_index(const GridGeometry& g, int cx, int cy, int cz) {
     return (uint32_t(cz) * g.dims[1] + uint32_t(cy)) * g.dims[0] + uint32_t(cx);
 }
 
+// The inverse of cell_index: cell coordinates (cx, cy, cz) of a cell index.
+PBF_INLINE void cell_coords(const GridGeometry& g, uint32_t cell, uint32_t c[3]) {
+    c[0] = cell % uint32_t(g.dims[0]);
+    c[1] = (cell / uint32_t(g.dims[0])) % uint32_t(g.dims[1]);
+    c[2] = cell / (uint32_t(g.dims[0]) * uint32_t(g.dims[1]));
+}
+
 PBF_INLINE uint32_t cell_key(const GridGeometry& g, Vec3 p) {
     return cell_index(g, cell_coord(g, p.x, 0), cell_coord(g, p.y, 1), cell_coord(g, p.z, 2));
 }

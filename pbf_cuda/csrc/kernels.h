@@ -31,14 +31,13 @@ PBF_INLINE Vec3 spiky_gradient(Vec3 r, float r2, float h) {
 // read from its mass, m = m0 2^(-l), which is an exact power-of-two multiple of m0.
 struct LevelRadii {
     float h[kMaxLevels];
-    float m0;
+    int m0_exponent;  // binary exponent of the level-0 mass m0 (frexpf), fixed per run
     // m = m0 2^-l exactly, so l is the difference of the binary exponents; no division, which
     // --use_fast_math would make approximate (m0 / m0 = 0.99999994 reads as level 1).
     PBF_HD int level_of_mass(float m) const {
-        int e, e0;
+        int e;
         frexpf(m, &e);
-        frexpf(m0, &e0);
-        int l = e0 - e;
+        int l = m0_exponent - e;
         return l < 0 ? 0 : (l >= kMaxLevels ? kMaxLevels - 1 : l);
     }
     PBF_HD float radius_of_mass(float m) const { return h[level_of_mass(m)]; }
@@ -50,7 +49,7 @@ struct LevelRadii {
 inline LevelRadii make_level_radii(float h0, float m0) {
     LevelRadii lr{};
     for (int l = 0; l < kMaxLevels; ++l) lr.h[l] = h0 * std::pow(2.0f, -l / 3.0f);
-    lr.m0 = m0;
+    frexpf(m0, &lr.m0_exponent);
     return lr;
 }
 

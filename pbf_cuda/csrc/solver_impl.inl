@@ -279,10 +279,9 @@ struct MergePassBit {
     const uint32_t* partner;
     PBF_HD uint32_t operator()(uint32_t i) const {
         if (partner[i] == 0xffffffffu) return 0u;
-        uint32_t k = keys[i];
-        uint32_t cx = k % uint32_t(g.dims[0]), cy = (k / uint32_t(g.dims[0])) % uint32_t(g.dims[1]);
-        uint32_t cz = k / (uint32_t(g.dims[0]) * uint32_t(g.dims[1]));
-        return 1u << ((cx % 3) + 3 * (cy % 3) + 9 * (cz % 3));
+        uint32_t c[3];
+        cell_coords(g, keys[i], c);
+        return 1u << ((c[0] % 3) + 3 * (c[1] % 3) + 9 * (c[2] % 3));
     }
 };
 
