@@ -41,6 +41,7 @@ SCENE_DIR = Path(__file__).resolve().parent.parent / "bench" / "scenes"
 BOUNDARY_KINDS = ("periodic", "wall")
 SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
 VAPOR_PROFILES = ("relative", "uniform")
+PROJECTIONS = ("position", "velocity")
 
 
 class SceneError(ValueError):
@@ -88,11 +89,22 @@ class PBF:
     iterations: int = _spec(4, 1, 200, "", "constraint iterations per step")
     relaxation: float = _spec(1e-2, 0.0, 1e3, "",
                               "constraint relaxation epsilon relative to a full neighbourhood's sum |grad C|^2")
-    unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces)")
+    projection: str = _spec("position", choices=PROJECTIONS,
+                            doc="'position': Macklin & Mueller's PBF, velocity = (x* - x)/dt after the density "
+                                "constraint (free surfaces); 'velocity': divergence-free velocity projection, the "
+                                "density constraint moves positions only (closed domains: energy is not created)")
+    divergence_iterations: int = _spec(4, 1, 64, "", "most conjugate-gradient iterations of the velocity projection")
+    divergence_tolerance: float = _spec(0.0, 0.0, 1.0, "",
+                                        "the velocity projection stops when RMS(div v) dt, the relative density "
+                                        "change per step, is below this (0: always divergence_iterations)")
+    unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces only: a closed domain "
+                                       "needs the bilateral constraint, or heated air leaves a rarefied layer)")
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")
     scorr_n: int = _spec(4, 1, 8, "", "tensile s_corr exponent n")
     scorr_dq: float = _spec(0.2, 0.0, 0.99, "", "tensile s_corr reference distance dq / h")
     xsph: float = _spec(0.01, 0.0, 1.0, "", "XSPH viscosity c")
+    viscosity: float = _spec(0.0, 0.0, 1e6, "m^2/s", "kinematic viscosity nu (pairwise SPH Laplacian, conserves "
+                                                     "momentum); explicit: keep nu dt / spacing^2 below 0.1")
     vorticity: float = _spec(0.0, 0.0, 1e4, "m/s", "vorticity confinement epsilon")
     gravity: list = _spec([0.0, 0.0, 0.0], -1e3, 1e3, "m/s^2", "constant body acceleration", length=3)
     max_velocity: float = _spec(1e3, 1e-6, 1e9, "m/s", "a particle faster than this stops the run as unstable")

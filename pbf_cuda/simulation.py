@@ -95,6 +95,10 @@ def build_params(scene: Scene, capacity: int):
     p.relaxation = pb.relaxation * grad2
     p.lambda_ref = 1.0 / grad2                          # lambda of a unit constraint violation
     p.unilateral = pb.unilateral
+    p.velocity_projection = pb.projection == "velocity"
+    p.divergence_iterations = pb.divergence_iterations
+    p.divergence_tolerance = pb.divergence_tolerance
+    p.viscosity = pb.viscosity
     p.scorr_k = pb.scorr_k
     p.scorr_n = pb.scorr_n
     p.scorr_dq = pb.scorr_dq
@@ -125,6 +129,7 @@ def build_params(scene: Scene, capacity: int):
         p.noise_offset = list(a.noise_offset)
         sm = scene.smoothing
         p.kappa = sm.kappa if scene.smoothing_active else 0.0
+        p.smoothing_beta = p.kappa * core.reference_smoothing_beta(h0, d, m0, rho0, sm.epsilon)
         p.smooth_fields = [f in sm.fields for f in ("temperature", "vapor", "cloud")]
         p.smoothing_epsilon = sm.epsilon
     ad = scene.adaptive
@@ -194,6 +199,11 @@ class Simulation:
                                fluid["cloud"], fluid["mass"], fluid["id"])
         if _state:
             self._solver.set_clock(int(_state["step"]), float(_state["time"]), int(_state["next_id"]))
+            if _state.get("budget_totals") is not None:
+                self._solver.set_budget_totals([float(x) for x in _state["budget_totals"]])
+            impulse = _state["fluid"].get("projection_impulse")
+            if impulse is not None and scene.pbf.projection == "velocity":
+                self._solver.set_projection_impulse(np.ascontiguousarray(impulse, np.float32))
 
     # ---- stepping ----------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
@@ -317,8 +327,13 @@ class Simulation:
         arrays.update({f"boundary_{k}": v for k, v in bd.items()})
         if self.scene.thermodynamics:
             arrays["boundary_vapor"] = s.get_float("boundary_vapor")
+        if self.scene.pbf.projection == "velocity":
+            arrays["fluid_projection_impulse"] = s.get_float("projection_impulse")
+        stats = s.stats()
         meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
-                "time": self.time, "next_id": s.next_id(), "backend": self.backend}
+                "time": self.time, "next_id": s.next_id(), "backend": self.backend,
+                "budget_totals": [stats.get(f"heat_{k}_total", 0.0)
+                                  for k in ("source", "latent", "adiabatic", "smoothing")]}
         return atomic_savez(path, meta, **arrays)
 
     @classmethod
@@ -338,6 +353,8 @@ class Simulation:
                 "vapor": z["fluid_vapor"] if thermo else zeros,
                 "cloud": z["fluid_cloud"] if thermo else zeros,
             }
+            if "fluid_projection_impulse" in z.files:
+                fluid["projection_impulse"] = z["fluid_projection_impulse"]
             nb = len(z["boundary_position"])
             boundary = {
                 "position": z["boundary_position"],
@@ -345,5 +362,5 @@ class Simulation:
                 "vapor": z["boundary_vapor"] if thermo else np.zeros(nb, np.float32),
             }
         state = {"fluid": fluid, "boundary": boundary, "step": meta["step"], "time": meta["time"],
-                 "next_id": meta["next_id"]}
+                 "next_id": meta["next_id"], "budget_totals": meta.get("budget_totals")}
         return cls(scene, backend=backend or meta["backend"], _state=state)

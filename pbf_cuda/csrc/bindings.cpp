@@ -139,6 +139,8 @@ public:
         d["n_particles"] = s.n_particles;
         d["density_error_mean"] = s.density_error_mean;
         d["density_error_max"] = s.density_error_max;
+        d["density_excess_mean"] = s.density_excess_mean;
+        d["density_deficit_mean"] = s.density_deficit_mean;
         d["max_speed"] = s.max_speed;
         d["min_position"] = std::vector<double>(s.min_position, s.min_position + 3);
         d["max_position"] = std::vector<double>(s.max_position, s.max_position + 3);
@@ -149,6 +151,23 @@ public:
         d["splits_last_step"] = s.split_last;
         d["merges_last_step"] = s.merge_last;
         d["split_capacity_rejects_last_step"] = s.capacity_rejects_last;
+        if (s.budget.valid) {
+            const pbf::StepBudget& b = s.budget;
+            d["mass"] = b.mass;
+            d["mass_centre_height"] = b.mass_centre_height;
+            d["kinetic_energy"] = b.kinetic_energy;
+            d["potential_energy"] = b.potential_energy;
+            d["mean_temperature"] = b.mean_temperature;
+            d["heat_source"] = b.heat_source;
+            d["heat_latent"] = b.heat_latent;
+            d["heat_adiabatic"] = b.heat_adiabatic;
+            d["heat_smoothing"] = b.heat_smoothing;
+            d["total_water"] = b.total_water;
+            d["heat_source_total"] = b.totals[0];
+            d["heat_latent_total"] = b.totals[1];
+            d["heat_adiabatic_total"] = b.totals[2];
+            d["heat_smoothing_total"] = b.totals[3];
+        }
         return d;
     }
 
@@ -175,6 +194,26 @@ double reference_gradient_norm2(float h, float d, float m, float rho0) {
 
 }  // namespace
 
+// beta_0 = grad C_ii / |grad C_i|^2 of the smoothing constraint (eq. 13, 16, 17) for a full lattice
+// neighbourhood, m^2 (negative: grad C_ii < 0). The solver multiplies it by kappa.
+double reference_smoothing_beta(float h, float d, float m, float rho0, float eps_rel) {
+    int r = int(std::ceil(h / d)) + 1;
+    double g = 0, s = 0;
+    for (int i = -r; i <= r; ++i)
+        for (int j = -r; j <= r; ++j)
+            for (int k = -r; k <= r; ++k) {
+                if (!i && !j && !k) continue;
+                pbf::Vec3 x{-d * i, -d * j, -d * k};
+                float r2 = pbf::dot(x, x);
+                pbf::Vec3 gw = pbf::spiky_gradient(x, r2, h);
+                double c = double(m) / rho0 * pbf::dot(x, gw) / (r2 + eps_rel * h * h);
+                g += c;
+                s += c * c;
+            }
+    double norm2 = g * g + s;
+    return norm2 > 0 ? g / norm2 : 0.0;
+}
+
 NB_MODULE(_core, m) {
     m.doc() = "cloudpbf particle solver core (one C++ source; CUDA and OpenMP backends)";
 
@@ -184,6 +223,7 @@ NB_MODULE(_core, m) {
     PBF_RW(spacing); PBF_RW(h0); PBF_RW(rest_density); PBF_RW(mass0); PBF_RW(dt); PBF_RW(check_every);
     PBF_RW(iterations); PBF_RW(relaxation); PBF_RW(lambda_ref); PBF_RW(unilateral); PBF_RW(scorr_k);
     PBF_RW(scorr_n); PBF_RW(scorr_dq); PBF_RW(xsph); PBF_RW(vorticity); PBF_RW(max_velocity);
+    PBF_RW(velocity_projection); PBF_RW(divergence_iterations); PBF_RW(divergence_tolerance); PBF_RW(viscosity); PBF_RW(smoothing_beta);
     PBF_RW(max_density_error); PBF_RW(thermodynamics); PBF_RW(ground_temperature); PBF_RW(lapse_rate);
     PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
     PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude);
@@ -210,6 +250,11 @@ NB_MODULE(_core, m) {
         .def("set_fluid", &PySolver::set_fluid, "position"_a, "velocity"_a, "temperature"_a, "vapor"_a,
              "cloud"_a, "mass"_a, "id"_a)
         .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
+        .def("set_projection_impulse", [](PySolver& s, FloatArray mu) { s.impl_->set_projection_impulse(mu.size(), mu.data()); })
+        .def("set_budget_totals", [](PySolver& s, std::vector<double> t) {
+            if (t.size() != 4) throw std::invalid_argument("set_budget_totals: expected 4 values");
+            s.impl_->set_budget_totals(t.data());
+        })
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
         .def("step", [](PySolver& s, int n) {
             std::string failure;
@@ -269,6 +314,8 @@ NB_MODULE(_core, m) {
         return nb::ndarray<nb::numpy, float>(out, {n, 3}, owner);
     });
     m.def("reference_gradient_norm2", &reference_gradient_norm2, "h"_a, "spacing"_a, "mass"_a, "rest_density"_a);
+    m.def("reference_smoothing_beta", &reference_smoothing_beta, "h"_a, "spacing"_a, "mass"_a, "rest_density"_a,
+          "eps_rel"_a);
     m.def("simplex2", [](nb::ndarray<const double, nb::c_contig, nb::device::cpu> x,
                          nb::ndarray<const double, nb::c_contig, nb::device::cpu> y) {
         std::size_t n = x.size();

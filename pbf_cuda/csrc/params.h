@@ -28,7 +28,12 @@ struct Params {
     float scorr_k = 0.0f;              // tensile term strength relative to lambda_ref
     int scorr_n = 4;
     float scorr_dq = 0.2f;             // dq / h
+    bool velocity_projection = false;  // true: divergence-free velocity projection + position-only density
+                                       // correction (closed domains); false: Macklin's PBF (free surfaces)
+    int divergence_iterations = 2;     // most conjugate-gradient iterations of the velocity projection
+    float divergence_tolerance = 0.0f; // stop when RMS(div v) dt is below this (relative density change per step)
     float xsph = 0.0f;                 // XSPH viscosity c
+    float viscosity = 0.0f;            // kinematic viscosity nu, m^2/s (pairwise SPH Laplacian)
     float vorticity = 0.0f;            // vorticity confinement epsilon, m/s
     float gravity[3] = {0, 0, 0};      // constant body acceleration, m/s^2
     float max_velocity = 1e3f;         // m/s; faster is unstable
@@ -50,6 +55,7 @@ struct Params {
     float noise_offset[2] = {0, 0};
     // Temperature smoothing (section 4.1); kappa = 0 => no pass
     float kappa = 0.0f;
+    float smoothing_beta = 0.0f;       // kappa grad C_ii / |grad C_i|^2 of a full lattice (eq. 17), m^2
     bool smooth_fields[3] = {true, false, false};  // temperature, vapor, cloud
     float smoothing_epsilon = 0.01f;   // epsilon of eq. 13 relative to h^2
     // Adaptivity (section 5.2)

@@ -7,6 +7,16 @@
 //   dp_i    = 1/rho0 sum_j (lambda_i m_j / m_i + lambda_j + s_corr) grad W_ij
 //             + 1/rho0 sum_b lambda_i m_b / m_i grad W_ib               (Macklin eq. 12-14)
 // Boundary particles (walls) have no constraint of their own and never move.
+//
+// The velocity projection (projection = "velocity") uses the same Jacobian J = grad C on velocities:
+//   D_i     = dC_i/dt = 1/rho0 sum_j m_j (v_i - v_j) . grad W_ij + 1/rho0 sum_b m_b v_i . grad W_ib
+//   mu_i    = -D_i / (sum_k |grad_k C_i|^2 / m_k + eps)
+//   dv_i    = 1/rho0 sum_j (mu_i m_j / m_i + mu_j) grad W_ij + 1/rho0 sum_b mu_i m_b / m_i grad W_ib
+// i.e. dv = M^-1 J^T mu: an M-orthogonal projection onto J v = 0, which removes only the compressing
+// part of the velocity (DFSPH's divergence-free solver, Bender & Koschier 2015, in PBF's lambda form).
+// mu solves (J M^-1 J^T) mu = -J v, the minimiser of the kinetic energy of v + M^-1 J^T mu; it is found by
+// Jacobi-preconditioned conjugate gradients (ApplyJT, ApplyJ below), whose every iterate lowers the kinetic
+// energy, so the projection never adds energy even when it stops before convergence.
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -34,13 +44,16 @@ struct DensityLambda {
     LevelRadii radii;
     ConstraintParams cp;
     float* lambda;
-    float* density;
+    float* density;         // nullptr: velocity mode (vel given), density not written
+    const Float4* vel;      // non-null: lambda of the divergence constraint D_i = J_i v (velocity projection)
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
         float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        Vec3 vi = vel ? xyz(vel[i]) : Vec3{0, 0, 0};
         float rho = 0.0f;
+        float div = 0.0f;        // rho0 D_i (velocity mode)
         Vec3 grad_i{0, 0, 0};
         float sum_grad2 = 0.0f;  // sum_j |grad_j C_i|^2 / m_j
         for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
@@ -52,6 +65,7 @@ struct DensityLambda {
                 Vec3 gj = (mj * cp.inv_rest_density) * gw;
                 grad_i += gj;
                 sum_grad2 += dot(gj, gj) / mj;
+                if (vel) div += mj * dot(vi - xyz(vel[j]), gw);
             }
         });
         if (boundary.start && near_wall(grid, xi, cp.h0)) {
@@ -60,13 +74,100 @@ struct DensityLambda {
                 rho += mb * (Adaptive ? poly6_sym(r2, hi, cp.h0) : poly6(r2, hi));
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
                 grad_i += (mb * cp.inv_rest_density) * gw;
+                if (vel) div += mb * dot(vi, gw);   // walls are at rest
             });
         }
-        float c = rho * cp.inv_rest_density - 1.0f;
-        if (cp.unilateral && c < 0.0f) c = 0.0f;
+        float c;
+        if (vel) {
+            c = div * cp.inv_rest_density;      // D_i, 1/s
+        } else {
+            c = rho * cp.inv_rest_density - 1.0f;
+            if (cp.unilateral && c < 0.0f) c = 0.0f;
+        }
         float denom = dot(grad_i, grad_i) / mi + sum_grad2 + cp.relaxation;
         lambda[i] = denom > 0.0f ? -c / denom : 0.0f;
-        density[i] = rho;
+        if (density) density[i] = rho;
+    }
+};
+
+// The two halves of A = J M^-1 J^T for the velocity projection's conjugate gradient solve
+// (solver_impl.inl: project_velocity): ApplyJT g_i = (M^-1 J^T p)_i, and ApplyJ q_i = (J g)_i together with
+// the Jacobi preconditioner diag_i = sum_k |grad_k C_i|^2 / m_k.
+template <bool Adaptive>
+struct ApplyJT {
+    GridGeometry grid;
+    CellRanges fluid;
+    CellRanges boundary;
+    LevelRadii radii;
+    ConstraintParams cp;
+    const float* p;
+    Float4* g;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 pi = fluid.pos[i];
+        Vec3 xi = xyz(pi);
+        float mi = pi.w;
+        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        float li = p[i];
+        Vec3 dv{0, 0, 0};
+        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+            if (j == i) return;
+            float mj = fluid.pos[j].w;
+            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
+            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
+            dv += (li * mj / mi + p[j]) * gw;
+        });
+        if (boundary.start && near_wall(grid, xi, cp.h0)) {
+            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
+                float mb = boundary.pos[b].w;
+                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
+                dv += (li * mb / mi) * gw;
+            });
+        }
+        g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
+    }
+};
+
+template <bool Adaptive>
+struct ApplyJ {
+    GridGeometry grid;
+    CellRanges fluid;
+    CellRanges boundary;
+    LevelRadii radii;
+    ConstraintParams cp;
+    const Float4* u;
+    float* q;
+    float* diag;   // nullptr: not written
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 pi = fluid.pos[i];
+        Vec3 xi = xyz(pi);
+        float mi = pi.w;
+        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        Vec3 ui = xyz(u[i]);
+        float div = 0.0f;
+        Vec3 grad_i{0, 0, 0};
+        float sum_grad2 = 0.0f;
+        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+            if (j == i) return;
+            float mj = fluid.pos[j].w;
+            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
+            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
+            div += mj * dot(ui - xyz(u[j]), gw);
+            if (diag) {
+                Vec3 gj = (mj * cp.inv_rest_density) * gw;
+                grad_i += gj;
+                sum_grad2 += dot(gj, gj) / mj;
+            }
+        });
+        if (boundary.start && near_wall(grid, xi, cp.h0)) {
+            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
+                float mb = boundary.pos[b].w;
+                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
+                div += mb * dot(ui, gw);
+                if (diag) grad_i += (mb * cp.inv_rest_density) * gw;
+            });
+        }
+        q[i] = div * cp.inv_rest_density;
+        if (diag) diag[i] = dot(grad_i, grad_i) / mi + sum_grad2;
     }
 };
 
@@ -81,6 +182,8 @@ struct PositionCorrection {
     ConstraintParams cp;
     const float* lambda;
     Float4* pos_out;
+    const Float4* vel;      // non-null: velocity mode, writes v_i + dv_i into vel_out (no wall clamp)
+    Float4* vel_out;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
@@ -93,7 +196,7 @@ struct PositionCorrection {
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
             float s = 0.0f;
-            if (cp.scorr_k_lambda > 0.0f) {
+            if (cp.scorr_k_lambda > 0.0f && !vel) {
                 float ratio = (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi)) * cp.scorr_inv_wdq;
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
@@ -108,6 +211,11 @@ struct PositionCorrection {
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
                 dp += (li * mb / mi) * gw;
             });
+        }
+        if (vel) {
+            Float4 v = vel[i];
+            vel_out[i] = make_float4(xyz(v) + cp.inv_rest_density * dp, v.w);
+            return;
         }
         Vec3 x = xi + cp.inv_rest_density * dp;
         // Collision with the walls: keep the particle inside the box on wall axes.
@@ -124,6 +232,10 @@ struct PositionCorrection {
 // XSPH viscosity and the vorticity omega_i = curl v (Macklin eq. 15-17):
 //   v_i <- v_i + c sum_j V_j (v_j - v_i) W_ij,   omega_i = sum_j V_j grad_i W_ij x (v_j - v_i),
 // with V_j = m_j / rho_j.
+//
+// Physical viscosity (Morris et al. 1997), pairwise so that momentum is conserved:
+//   dv_i = nu dt lap(v)_i,  lap(v)_i = 2 sum_j (m_j / rho0) (v_i - v_j) (x_ij . grad W_ij) / (|x_ij|^2 + eps)
+// (the same SPH Laplacian as the smoothing of eq. 13; explicit, stable for nu dt / d^2 below ~0.1).
 template <bool Adaptive>
 struct ViscosityVorticity {
     GridGeometry grid;
@@ -131,6 +243,8 @@ struct ViscosityVorticity {
     LevelRadii radii;
     float h0;
     float xsph;
+    float nu_dt;            // kinematic viscosity times dt, m^2
+    float inv_rest_density;
     bool want_vorticity;
     const Float4* vel;
     const float* density;
@@ -142,6 +256,7 @@ struct ViscosityVorticity {
         float hi = Adaptive ? radii.radius_of_mass(pi.w) : h0;
         Vec3 vi = xyz(vel[i]);
         Vec3 visc{0, 0, 0};
+        Vec3 lap{0, 0, 0};
         Vec3 w{0, 0, 0};
         for_each_neighbor(grid, fluid, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
@@ -149,13 +264,14 @@ struct ViscosityVorticity {
             float hj = Adaptive ? radii.radius_of_mass(mj) : h0;
             float vol = mj / density[j];
             Vec3 dv = xyz(vel[j]) - vi;
-            visc += (vol * (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi))) * dv;
-            if (want_vorticity) {
+            if (xsph > 0.0f) visc += (vol * (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi))) * dv;
+            if (want_vorticity || nu_dt > 0.0f) {
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-                w += vol * cross(gw, dv);
+                if (want_vorticity) w += vol * cross(gw, dv);
+                if (nu_dt > 0.0f) lap -= (2.0f * mj * inv_rest_density * dot(r, gw) / (r2 + 0.01f * hi * hj)) * dv;
             }
         });
-        vel_out[i] = make_float4(vi + xsph * visc, 0.0f);
+        vel_out[i] = make_float4(vi + xsph * visc + nu_dt * lap, 0.0f);
         if (want_vorticity) omega[i] = make_float4(w, length(w));
     }
 };

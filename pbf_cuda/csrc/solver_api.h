@@ -27,12 +27,35 @@ struct PhaseTotals {
     long long count[kNumPhases] = {};
 };
 
+// Energy and heat budget of the last step (fluid particles; mass-weighted, SI). Heat terms are the
+// mass-weighted mean temperature change of the step in K from each process, so that
+//   mean_temperature(step) - mean_temperature(step - 1) = heat_source + heat_latent + heat_adiabatic + heat_smoothing
+// up to rounding (split/merge conserve mass-weighted heat by construction).
+struct StepBudget {
+    bool valid = false;
+    double mass = 0.0;                 // kg
+    double mass_centre_height = 0.0;   // m
+    double kinetic_energy = 0.0;       // J (sum 1/2 m |u|^2)
+    double potential_energy = 0.0;     // J, available potential energy of a stable stratification:
+                                       //   sum m (k_b / T0(y)) (T - T0(y))^2 / (2 (Gamma_d - Gamma_env))
+    double mean_temperature = 0.0;     // K, mass-weighted
+    double heat_source = 0.0;          // K, ground heating (eq. 5)
+    double heat_latent = 0.0;          // K, latent heat (eq. 11)
+    double heat_adiabatic = 0.0;       // K, adiabatic term (eq. 7)
+    double heat_smoothing = 0.0;       // K, temperature smoothing (eq. 12-17): 0 up to rounding
+    double total_water = 0.0;          // kg (sum m (v + w))
+    // The four heat terms summed over every step since step 0 (checkpoints carry them), K.
+    double totals[4] = {0, 0, 0, 0};   // source, latent, adiabatic, smoothing
+};
+
 struct StepStats {
     long long step = 0;
     double time = 0.0;
     std::size_t n_particles = 0;
     double density_error_mean = 0.0;
     double density_error_max = 0.0;
+    double density_excess_mean = 0.0;   // mean max(rho/rho0 - 1, 0): compression
+    double density_deficit_mean = 0.0;  // mean max(1 - rho/rho0, 0): rarefaction
     double max_speed = 0.0;
     double min_position[3] = {0, 0, 0};
     double max_position[3] = {0, 0, 0};
@@ -41,6 +64,7 @@ struct StepStats {
     long long merges = 0;                  // cumulative
     long long split_capacity_rejects = 0;  // cumulative: splits refused because capacity was full
     long long split_last = 0, merge_last = 0, capacity_rejects_last = 0;  // in the last step
+    StepBudget budget;
 };
 
 
@@ -73,6 +97,10 @@ public:
     // Copies an array to host memory (dst holds size() elements of the array's kind).
     virtual ArrayView view(const std::string& name) = 0;
     virtual void copy_to_host(const std::string& name, void* dst) = 0;
+    // Warm start of the velocity projection (the last step's pressure impulse per particle), for checkpoints.
+    virtual void set_projection_impulse(std::size_t n, const float* mu) = 0;
+    // Restore the budget's running totals (StepBudget::totals) from a checkpoint.
+    virtual void set_budget_totals(const double* totals) = 0;
     virtual PhaseTotals timings() const = 0;
     virtual void reset_timings() = 0;
     virtual StepStats stats() = 0;

@@ -5,16 +5,28 @@
 // One step (section 3-5 of the paper, Macklin & Mueller 2013 Algorithm 1):
 //   pbf:            predict x* = x + dt (v + dt g); sort by cell of x*; cell ranges        [neighbors]
 //                   iterations { rho, lambda (eq. 1-4, 18); dp with s_corr; walls }     [solver]
-//                   v = (x* - x) / dt; XSPH; vorticity confinement
-//   smoothing:      temperature (and optionally vapor, cloud) smoothing (eq. 12-17)
-//   cloud_dynamics: heating, buoyancy, adiabatic cooling, phase transition, latent heat (eq. 5-11)
+//                   v = (x* - x) / dt (position projection only); XSPH, viscosity; vorticity confinement
+//   smoothing:      temperature (and optionally vapor, cloud) smoothing (eq. 12-17), conservative
+//   cloud_dynamics: heating, adiabatic cooling, phase transition, latent heat, buoyancy (eq. 5-11)
+//   pbf:            velocity projection only: v = P(v + dt g), divergence-free at x*        [solver]
 //   commit x = x* (wrapped on periodic axes)
 //   splitting / merging (section 5.2), then compaction
+//
+// Two ways to keep the fluid incompressible (Params::velocity_projection):
+//  - position projection (Macklin & Mueller): the velocity is (x* - x) / dt after the density
+//    constraint moved x*. Right for free surfaces (unilateral constraint), but every density error
+//    left by the few Jacobi iterations comes back as velocity in the next step: it adds energy.
+//  - velocity projection (closed domains, the atmosphere): the velocity is projected onto J v = 0
+//    (divergence-free, pbf_constraints.h) after all forces, and the density constraint only moves
+//    positions. The projection is M-orthogonal, so it removes only the compressing part of the flow
+//    and never adds kinetic energy; the density constraint is bilateral, so heated air cannot leave a
+//    rarefied layer behind.
 #include <thrust/copy.h>
 #include <thrust/device_vector.h>
 #include <thrust/execution_policy.h>
 #include <thrust/fill.h>
 #include <thrust/for_each.h>
+#include <thrust/functional.h>
 #include <thrust/gather.h>
 #include <thrust/iterator/counting_iterator.h>
 #include <thrust/scan.h>
@@ -219,6 +231,7 @@ struct Commit {
 // Stability and diagnostics reduction over the fluid particles.
 struct Reduced {
     float err_sum, err_max, speed2_max;
+    float excess_sum, deficit_sum;  // sum max(C, 0), sum max(-C, 0): the two sides of the density error
     uint32_t bad;
     float lo[3], hi[3];
 };
@@ -227,6 +240,8 @@ struct ReduceOp {
     PBF_HD Reduced operator()(const Reduced& a, const Reduced& b) const {
         Reduced r;
         r.err_sum = a.err_sum + b.err_sum;
+        r.excess_sum = a.excess_sum + b.excess_sum;
+        r.deficit_sum = a.deficit_sum + b.deficit_sum;
         r.err_max = fmaxf(a.err_max, b.err_max);
         r.speed2_max = fmaxf(a.speed2_max, b.speed2_max);
         r.bad = a.bad + b.bad;
@@ -257,6 +272,8 @@ struct ParticleCheck {
         Vec3 x = xyz(pos[i]), v = xyz(vel[i]);
         r.err_sum = e;
         r.err_max = e;
+        r.excess_sum = fmaxf(c, 0.0f);
+        r.deficit_sum = fmaxf(-c, 0.0f);
         r.speed2_max = dot(v, v);
         r.bad = is_bad(i) ? 1u : 0u;
         r.lo[0] = r.hi[0] = x.x;
@@ -298,6 +315,118 @@ struct HasFlag {
     const uint8_t* flags;
     uint8_t flag;
     PBF_HD bool operator()(uint32_t i) const { return (flags[i] & flag) != 0; }
+};
+
+// Mass-weighted sums for the step budget (StepBudget), double precision.
+struct BudgetSums {
+    double m, my, ke, mT, mw, mq, heat, ape;
+};
+
+struct BudgetAdd {
+    PBF_HD BudgetSums operator()(const BudgetSums& a, const BudgetSums& b) const {
+        return BudgetSums{a.m + b.m, a.my + b.my, a.ke + b.ke, a.mT + b.mT, a.mw + b.mw, a.mq + b.mq,
+                          a.heat + b.heat, a.ape + b.ape};
+    }
+};
+
+struct BudgetTerms {
+    AtmosphereParams a;
+    const Float4* pos;
+    const Float4* vel;          // nullptr: no kinetic energy
+    const float* temperature;   // nullptr without thermodynamics
+    const float* vapor;
+    const float* cloud;
+    float ape_scale;            // 1 / (2 (Gamma_d - Gamma_env)) for a stable stratification, else 0
+    bool with_heating;
+    PBF_HD BudgetSums operator()(uint32_t i) const {
+        Float4 p = pos[i];
+        double m = p.w;
+        BudgetSums s{m, m * p.y, 0, 0, 0, 0, 0, 0};
+        if (vel) {
+            Vec3 u = xyz(vel[i]);
+            s.ke = 0.5 * m * double(dot(u, u));
+        }
+        if (temperature) {
+            float T = temperature[i];
+            s.mT = m * T;
+            s.mw = m * cloud[i];
+            s.mq = m * (double(vapor[i]) + double(cloud[i]));
+            if (with_heating) s.heat = m * a.heating(xyz(p));
+            float T0 = a.environment_temperature(p.y);
+            double dT = double(T) - T0;
+            s.ape = m * (a.buoyancy / T0) * dT * dT * ape_scale;
+        }
+        return s;
+    }
+};
+
+// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner).
+struct CgStart {
+    float* r;
+    const float* diag;
+    float* p;
+    PBF_HD void operator()(uint32_t i) const {
+        r[i] = -r[i];
+        p[i] = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
+    }
+};
+struct CgDot {
+    const float* a;
+    const float* b;
+    PBF_HD double operator()(uint32_t i) const { return double(a[i]) * double(b[i]); }
+};
+// r . D^-1 r (inv_diag set), or p . D p (diag_mul set).
+struct CgPrecDot {
+    const float* r;
+    const float* inv_diag;
+    const float* diag_mul;
+    PBF_HD double operator()(uint32_t i) const {
+        if (diag_mul) return double(r[i]) * r[i] * diag_mul[i];
+        return inv_diag[i] > 0.0f ? double(r[i]) * r[i] / inv_diag[i] : 0.0;
+    }
+};
+struct CgUpdate {
+    float alpha;
+    const Float4* g;
+    const float* q;
+    const float* p;
+    Float4* v;
+    float* r;
+    float* mu;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 a = v[i], b = g[i];
+        v[i] = Float4{a.x + alpha * b.x, a.y + alpha * b.y, a.z + alpha * b.z, a.w};
+        r[i] -= alpha * q[i];
+        mu[i] += alpha * p[i];
+    }
+};
+struct CgDirection {
+    float beta;
+    const float* r;
+    const float* diag;
+    float* p;
+    PBF_HD void operator()(uint32_t i) const {
+        float z = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
+        p[i] = z + beta * p[i];
+    }
+};
+
+struct AddVelocity {
+    const Float4* dv;
+    Float4* vel;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i], d = dv[i];
+        vel[i] = Float4{v.x + d.x, v.y + d.y, v.z + d.z, v.w};
+    }
+};
+
+struct AddAcceleration {
+    Float4* vel;
+    Vec3 dv;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i];
+        vel[i] = Float4{v.x + dv.x, v.y + dv.y, v.z + dv.z, v.w};
+    }
 };
 
 // ---- the solver ---------------------------------------------------------------------------------
@@ -422,6 +551,16 @@ public:
         parallel_for(n, MarkCellRanges{raw(dkeys), uint32_t(n), raw(bstart_), raw(bend_)});
     }
 
+    void set_projection_impulse(std::size_t n, const float* mu) override {
+        if (!p_.velocity_projection) return;
+        if (n != n_) throw std::invalid_argument("projection_impulse: length differs from the particle count");
+        thrust::copy(mu, mu + n, cg_mu_.begin());
+    }
+
+    void set_budget_totals(const double* totals) override {
+        for (int k = 0; k < 4; ++k) last_stats_.budget.totals[k] = totals[k];
+    }
+
     void set_clock(long long step, double time, uint32_t next_id) override {
         step_ = step;
         time_ = time;
@@ -473,6 +612,7 @@ public:
         else if (name == "vapor" && p_.thermodynamics) f1(vapor_, n_);
         else if (name == "cloud" && p_.thermodynamics) f1(cloud_, n_);
         else if (name == "density") f1(density_, n_);
+        else if (name == "projection_impulse" && p_.velocity_projection) f1(cg_mu_, n_);
         else if (name == "boundary_position") f4(bpos_, nb_);
         else if (name == "boundary_temperature") f1(btemperature_, nb_);
         else if (name == "boundary_vapor") f1(bvapor_, nb_);
@@ -505,6 +645,8 @@ public:
             Reduced r = reduce_checks();
             s.density_error_mean = r.err_sum / double(n_);
             s.density_error_max = r.err_max;
+            s.density_excess_mean = r.excess_sum / double(n_);
+            s.density_deficit_mean = r.deficit_sum / double(n_);
             s.max_speed = std::sqrt(double(r.speed2_max));
             for (int k = 0; k < 3; ++k) { s.min_position[k] = r.lo[k]; s.max_position[k] = r.hi[k]; }
         }
@@ -532,6 +674,10 @@ private:
         keys_.resize(cap); perm_.resize(cap);
         float_tmp_.resize(cap);
         if (p_.vorticity > 0.0f) omega_.resize(cap);
+        if (p_.velocity_projection) {
+            cg_r_.resize(cap); cg_p_.resize(cap); cg_q_.resize(cap); cg_diag_.resize(cap);
+            cg_mu_.assign(cap, 0.0f);
+        }
         if (p_.thermodynamics) {
             temperature_.resize(cap); vapor_.resize(cap); cloud_.resize(cap);
         }
@@ -566,6 +712,7 @@ private:
         else permute(density_, float_tmp_);  // compaction keeps each particle's last density
         permute(vel_, vel_tmp_);
         permute(id_, uint_tmp_);
+        if (p_.velocity_projection) permute(cg_mu_, float_tmp_);
         if (p_.thermodynamics) {
             permute(temperature_, float_tmp_);
             permute(vapor_, float_tmp_);
@@ -583,32 +730,114 @@ private:
         parallel_for(n_, MarkCellRanges{raw(keys_), uint32_t(n_), raw(cell_start_), raw(cell_end_)});
     }
 
+    BudgetSums reduce_budget(const dvec<Float4>& positions, bool with_vel, bool with_heating) const {
+        const bool thermo = p_.thermodynamics;
+        float stable = p_.dry_lapse_rate - p_.lapse_rate;
+        BudgetTerms t{atm_, raw(positions), with_vel ? raw(vel_) : nullptr,
+                      thermo ? raw(temperature_) : nullptr, thermo ? raw(vapor_) : nullptr,
+                      thermo ? raw(cloud_) : nullptr, stable > 0.0f ? 0.5f / stable : 0.0f, with_heating};
+        return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                        thrust::counting_iterator<uint32_t>(uint32_t(n_)), t,
+                                        BudgetSums{0, 0, 0, 0, 0, 0, 0, 0}, BudgetAdd{});
+    }
+
+    // Density constraint iterations on the predicted positions (eq. 1-4, 18).
+    template <bool Adaptive>
+    void solve_density(const CellRanges& bnd) {
+        for (int it = 0; it < p_.iterations; ++it) {
+            CellRanges fl = fluid_ranges(pred_);
+            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_), nullptr});
+            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_),
+                                                          nullptr, nullptr});
+            pred_.swap(pos_tmp_);
+        }
+    }
+
+    // Divergence-free velocity projection at the predicted positions (pbf_constraints.h): preconditioned
+    // conjugate gradients on A mu = -J v, A = J M^-1 J^T, updating v += alpha M^-1 J^T p as it goes.
+    // The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
+    // Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
+    // v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
+    template <bool Adaptive>
+    void project_velocity(const CellRanges& bnd) {
+        CellRanges fl = fluid_ranges(pred_);
+        const std::size_t n = n_;
+        float* r = raw(cg_r_);
+        float* p = raw(cg_p_);
+        float* q = raw(cg_q_);
+        float* diag = raw(cg_diag_);
+        Float4* g = raw(vel_tmp_);
+        Float4* v = raw(vel_);
+        float* mu = raw(cg_mu_);
+        parallel_for(n, ApplyJT<Adaptive>{grid_, fl, bnd, radii_, cp_, mu, g});
+        parallel_for(n, AddVelocity{g, v});
+        // r = -J v, z = r / diag, p = z
+        parallel_for(n, ApplyJ<Adaptive>{grid_, fl, bnd, radii_, cp_, v, r, diag});
+        parallel_for(n, CgStart{r, diag, p});
+        double rz = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                             thrust::counting_iterator<uint32_t>(uint32_t(n)), CgDot{r, p}, 0.0,
+                                             thrust::plus<double>());
+        // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
+        // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
+        const double tol2 = double(p_.divergence_tolerance) * p_.divergence_tolerance / (double(p_.dt) * p_.dt) * n;
+        auto converged = [&]() {
+            if (!(tol2 > 0.0)) return false;
+            double rr = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                                 thrust::counting_iterator<uint32_t>(uint32_t(n)), CgDot{r, r}, 0.0,
+                                                 thrust::plus<double>());
+            return rr <= tol2;
+        };
+        last_projection_iterations_ = 0;
+        for (int it = 0; it < p_.divergence_iterations && rz > 0.0 && !converged(); ++it) {
+            last_projection_iterations_ = it + 1;
+            parallel_for(n, ApplyJT<Adaptive>{grid_, fl, bnd, radii_, cp_, p, g});           // g = M^-1 J^T p
+            parallel_for(n, ApplyJ<Adaptive>{grid_, fl, bnd, radii_, cp_, g, q, nullptr});   // q = A p
+            double pq = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                                 thrust::counting_iterator<uint32_t>(uint32_t(n)), CgDot{p, q}, 0.0,
+                                                 thrust::plus<double>());
+            // A direction whose Rayleigh quotient pq / p.D.p is tiny lies in the near-null space of A (modes the
+            // SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
+            // be huge and arbitrary. Stop there.
+            double pdp = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                                  thrust::counting_iterator<uint32_t>(uint32_t(n)),
+                                                  CgPrecDot{p, nullptr, diag}, 0.0, thrust::plus<double>());
+            if (!(pq > 1e-5 * pdp)) break;
+            float alpha = float(rz / pq);
+            // v += alpha g; r -= alpha q; the new z = r / diag is formed inside the next dot product
+            parallel_for(n, CgUpdate{alpha, g, q, p, v, r, mu});
+            if (it + 1 == p_.divergence_iterations) break;
+            double rz_new = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                                     thrust::counting_iterator<uint32_t>(uint32_t(n)),
+                                                     CgPrecDot{r, diag, nullptr}, 0.0, thrust::plus<double>());
+            float beta = float(rz_new / rz);
+            rz = rz_new;
+            parallel_for(n, CgDirection{beta, r, diag, p});                                   // p = z + beta p
+        }
+    }
+
     template <bool Adaptive>
     void do_step() {
         const float dt = p_.dt;
+        const bool vproj = p_.velocity_projection;
+        const Vec3 gravity{p_.gravity[0], p_.gravity[1], p_.gravity[2]};
+        BudgetSums start = reduce_budget(pos_, false, false);
         // ---- PBF (Table 1 column "PBF") ----
         clock_.begin(kPhasePBF);
         clock_.begin(kPhaseNeighbors);
-        parallel_for(n_, Predict{raw(vel_), raw(pos_), raw(pred_),
-                                 Vec3{p_.gravity[0], p_.gravity[1], p_.gravity[2]}, dt});
+        parallel_for(n_, Predict{raw(vel_), raw(pos_), raw(pred_), vproj ? Vec3{0, 0, 0} : gravity, dt});
         build_neighbor_grid();
         clock_.end(kPhaseNeighbors);
 
         clock_.begin(kPhaseSolver);
         CellRanges bnd = boundary_ranges();
-        for (int it = 0; it < p_.iterations; ++it) {
-            CellRanges fl = fluid_ranges(pred_);
-            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_)});
-            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_)});
-            pred_.swap(pos_tmp_);
-        }
-        parallel_for(n_, UpdateVelocity{raw(pos_), raw(pred_), raw(vel_), 1.0f / dt});
-        if (p_.xsph > 0.0f || p_.vorticity > 0.0f) {
+        solve_density<Adaptive>(bnd);
+        if (!vproj) parallel_for(n_, UpdateVelocity{raw(pos_), raw(pred_), raw(vel_), 1.0f / dt});
+        if (p_.xsph > 0.0f || p_.vorticity > 0.0f || p_.viscosity > 0.0f) {
             CellRanges fl = fluid_ranges(pred_);
             bool vort = p_.vorticity > 0.0f;
-            parallel_for(n_, ViscosityVorticity<Adaptive>{grid_, fl, radii_, p_.h0, p_.xsph, vort, raw(vel_),
-                                                          raw(density_), raw(vel_tmp_),
-                                                          vort ? raw(omega_) : nullptr});
+            parallel_for(n_, ViscosityVorticity<Adaptive>{grid_, fl, radii_, p_.h0, p_.xsph, p_.viscosity * dt,
+                                                          cp_.inv_rest_density, vort, raw(vel_), raw(density_),
+                                                          raw(vel_tmp_), vort ? raw(omega_) : nullptr});
             vel_.swap(vel_tmp_);
             if (vort)
                 parallel_for(n_, VorticityConfinement<Adaptive>{grid_, fl, radii_, p_.h0, p_.vorticity, dt,
@@ -618,22 +847,23 @@ private:
         clock_.end(kPhasePBF);
 
         // ---- temperature smoothing (section 4.1) ----
+        double smoothing_heat = 0.0;
         if (smoothing_) {
+            BudgetSums before = reduce_budget(pred_, false, false);
             clock_.begin(kPhaseSmoothing);
             dvec<float>* fields[3] = {&temperature_, &vapor_, &cloud_};
-            dvec<float>* bvals[3] = {&btemperature_, &bvapor_, &bcloud_};
             SmoothingFields sf{};
             for (int k = 0; k < 3; ++k) {
                 if (!p_.smooth_fields[k]) continue;
                 sf.in[k] = raw(*fields[k]);
                 sf.out[k] = raw(smooth_out_[k]);
-                sf.boundary[k] = nb_ ? raw(*bvals[k]) : nullptr;
             }
-            parallel_for(n_, SmoothScalars<Adaptive>{grid_, fluid_ranges(pred_), bnd, radii_, p_.h0,
-                                                     cp_.inv_rest_density, p_.kappa, p_.smoothing_epsilon, sf});
+            parallel_for(n_, SmoothScalars<Adaptive>{grid_, fluid_ranges(pred_), radii_, p_.h0, cp_.inv_rest_density,
+                                                     p_.smoothing_beta, p_.smoothing_epsilon, p_.lapse_rate, sf});
             for (int k = 0; k < 3; ++k)
                 if (p_.smooth_fields[k]) fields[k]->swap(smooth_out_[k]);
             clock_.end(kPhaseSmoothing);
+            smoothing_heat = reduce_budget(pred_, false, false).mT - before.mT;
         }
 
         // ---- cloud dynamics (eq. 5-11) ----
@@ -645,8 +875,37 @@ private:
         }
 
         clock_.begin(kPhasePBF);
+        if (vproj) {
+            clock_.begin(kPhaseSolver);
+            if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
+                parallel_for(n_, AddAcceleration{raw(vel_), dt * gravity});
+            project_velocity<Adaptive>(bnd);
+            clock_.end(kPhaseSolver);
+        }
+        clock_.end(kPhasePBF);
+        BudgetSums end = reduce_budget(pred_, true, p_.thermodynamics);
+        clock_.begin(kPhasePBF);
         parallel_for(n_, Commit{grid_, raw(pred_), raw(pos_)});
         clock_.end(kPhasePBF);
+
+        StepBudget& b = last_stats_.budget;
+        b.valid = true;
+        double M = end.m > 0 ? end.m : 1.0;
+        b.mass = end.m;
+        b.mass_centre_height = end.my / M;
+        b.kinetic_energy = end.ke;
+        b.potential_energy = end.ape;
+        b.mean_temperature = end.mT / M;
+        b.heat_source = end.heat / M;
+        b.heat_smoothing = smoothing_heat / M;
+        b.heat_adiabatic = -double(p_.dry_lapse_rate) * (end.my - start.my) / M;
+        b.heat_latent = double(p_.latent_heat) * (end.mw - start.mw) / M;
+        b.total_water = end.mq;
+        if (!p_.thermodynamics) b.heat_adiabatic = 0.0;
+        b.totals[0] += b.heat_source;
+        b.totals[1] += b.heat_latent;
+        b.totals[2] += b.heat_adiabatic;
+        b.totals[3] += b.heat_smoothing;
 
         step_ += 1;
         time_ += dt;
@@ -710,6 +969,8 @@ private:
                                                  thermo ? raw(cloud_) : nullptr});
         }
         next_id_ += uint32_t(splits);
+        if (splits && p_.velocity_projection)   // new children start their warm start from zero
+            thrust::fill(thrust::device, cg_mu_.begin() + n_, cg_mu_.begin() + n_ + splits, 0.0f);
         n_ += splits;
         clock_.end(kPhaseSplitting);
 
@@ -745,7 +1006,7 @@ private:
 
     Reduced reduce_checks() {
         Reduced init;
-        init.err_sum = 0.0f; init.err_max = 0.0f; init.speed2_max = 0.0f; init.bad = 0;
+        init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.speed2_max = 0.0f; init.bad = 0;
         for (int k = 0; k < 3; ++k) { init.lo[k] = INFINITY; init.hi[k] = -INFINITY; }
         return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
                                         thrust::counting_iterator<uint32_t>(uint32_t(n_)), make_check(), init,
@@ -802,6 +1063,9 @@ private:
     dvec<Float4> pos_, pred_, pos_tmp_, vel_, vel_tmp_, omega_;
     dvec<uint32_t> id_, uint_tmp_, keys_, perm_, cell_start_, cell_end_;
     dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
+    dvec<float> cg_r_, cg_p_, cg_q_, cg_diag_;   // velocity projection (conjugate gradients)
+    dvec<float> cg_mu_;
+    int last_projection_iterations_ = 0;                         // its solution, kept per particle for the next step's warm start
     dvec<uint8_t> flags_;
     dvec<float> energy_;
     dvec<uint32_t> split_count_, split_slot_, split_candidates_, merge_partner_;

@@ -1,10 +1,16 @@
-// Cloud dynamics of section 4, per particle, in the paper's order:
+// Cloud dynamics of section 4, per particle:
 //   ground heating        dT/dt = S_e(x, z)                            (eq. 5, simplex pattern)
-//   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6)
 //   adiabatic cooling     dT = -Gamma_d dy                             (eq. 7, dy = the step's rise)
 //   phase transition      dw/dt = -dv/dt = alpha (v - gamma)           (eq. 8-9)
 //                         gamma = min(A exp(B / (T + C)), v + w)      (eq. 10)
 //   latent heat           dT = Q dw                                    (eq. 11)
+//   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6)
+// The paper lists buoyancy before the adiabatic term. Here the buoyancy is evaluated last, with the
+// temperature and cloud water that belong to the particle's new height: with the paper's order the
+// force sees a temperature that is Gamma_d dy too warm for a rising particle (too cold for a sinking
+// one), a force proportional to +u_y that makes every gravity wave grow (e-folding time
+// T0 / (k_b Gamma_d dt), 1000 s at dt = 3 s). With this order the step is a symplectic Euler step
+// of the oscillator and a wave's energy stays bounded.
 // The phase transition is integrated exactly over the step for the linearised coupled system
 // (deficit D = v - gamma decays at rate alpha (1 + Q dgamma/dT)), so it is stable for any
 // alpha dt, and total water v + w is conserved by construction (v = q - w).
@@ -29,6 +35,11 @@ struct AtmosphereParams {
                             double(z) * noise_frequency + noise_offset[1]);
         float s = 1.0f + noise_amplitude * float(n);
         return s > 0.0f ? s : 0.0f;
+    }
+    // Temperature change of one step from the ground heating at position x (eq. 5), K.
+    PBF_HD float heating(Vec3 x) const {
+        if (!(heating_rate > 0.0f) || !(x.y < heating_depth)) return 0.0f;
+        return heating_rate * heating_pattern(x.x, x.z) * dt;
     }
 };
 
@@ -65,14 +76,13 @@ struct CloudDynamics {
     PBF_HD void operator()(uint32_t i) const {
         Vec3 x = xyz(pos_new[i]);
         float T = temperature[i], v = vapor[i], w = cloud[i];
-        if (a.heating_rate > 0.0f && x.y < a.heating_depth)
-            T += a.heating_rate * a.heating_pattern(x.x, x.z) * a.dt;                      // eq. 5
+        T += a.heating(x);                                                                  // eq. 5
+        T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
+        phase_transition(a, T, v, w);                                                      // eq. 9-11
         float T0 = a.environment_temperature(x.y);
         float accel = a.buoyancy * (T - T0) / T0 - a.cloud_gravity * w;                    // eq. 6
         Float4 u = vel[i];
         vel[i] = Float4{u.x, u.y + a.dt * accel, u.z, u.w};
-        T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
-        phase_transition(a, T, v, w);                                                      // eq. 9-11
         temperature[i] = T;
         vapor[i] = v;
         cloud[i] = w;

@@ -1,0 +1,217 @@
+"""An incompressible, energy-honest particle atmosphere: the velocity projection, the conservative
+smoothing and the per-step energy and heat budget (README: Physics and numerics).
+
+Each test is a physical statement: an inviscid flow never gains kinetic energy, a viscous vortex decays at
+the rate its viscosity implies, a gravity wave keeps its energy and frequency, a heated closed box keeps its
+mass where it is, and the heat budget closes.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from pbf_cuda import Simulation, load_scene, scene_from_dict
+from solver_helpers import BACKENDS
+
+
+def cellular_scene(dt, **overrides):
+    """The stratified box with buoyancy off and its wave mode as a steady cellular flow (inviscid)."""
+    return load_scene("stratified").replace(**{
+        "atmosphere.buoyancy": 0.0, "wave.modes_x": 2, "wave.modes_y": 1, "wave.amplitude": 0.5,
+        "pbf.xsph": 0.0, "pbf.vorticity": 0.0, "time.dt": dt, **overrides})
+
+
+def kinetic_energy_series(sim, steps):
+    out = []
+    for _ in range(steps):
+        sim.step(1)
+        out.append(sim.stats()["kinetic_energy"])
+    return np.array(out)
+
+
+def initial_kinetic_energy(sim):
+    st = sim.state()
+    return 0.5 * float(np.sum(st["mass"].astype(np.float64) * np.sum(st["velocity"].astype(np.float64) ** 2, 1)))
+
+
+@pytest.mark.parametrize("dt, steps, backend", [(5.0, 500, "cpu"), (2.5, 500, "cpu"),
+                                                pytest.param(5.0, 500, "cuda", marks=pytest.mark.gpu)])
+def test_inviscid_cellular_flow_never_gains_kinetic_energy(dt, steps, backend):
+    sim = Simulation(cellular_scene(dt), backend=backend, seed=0)
+    ke0 = initial_kinetic_energy(sim)
+    ke = kinetic_energy_series(sim, steps)
+    assert ke.max() <= 1.01 * ke0
+    assert ke[-1] > 0.3 * ke0                     # and the flow is still there (not damped away)
+    assert sim.stats()["density_error_mean"] < 0.01
+
+
+def test_lattice_with_random_velocities_never_gains_kinetic_energy():
+    scene = cellular_scene(5.0, **{"wave.amplitude": 0.0, "particles.max_speed": 0.05})
+    sim = Simulation(scene, backend="cpu", seed=4)
+    ke0 = initial_kinetic_energy(sim)
+    ke = kinetic_energy_series(sim, 100)
+    assert np.all(ke <= ke0 * (1 + 1e-6))
+
+
+def periodic_box(viscosity, n=32, depth=8, dt=0.01):
+    """A fully periodic 1 m box of water-like particles (no walls, no thermodynamics), d = 1/n."""
+    d = 1.0 / n
+    return scene_from_dict({
+        "scene": {"name": "periodic_box"},
+        "domain": {"size": [1.0, 1.0, depth * d], "boundary": ["periodic", "periodic", "periodic"]},
+        "particles": {"spacing": d, "rest_density": 1000.0},
+        "time": {"dt": dt},
+        "pbf": {"projection": "velocity", "unilateral": False, "relaxation": 1.0, "scorr_k": 0.1,
+                "divergence_iterations": 4, "xsph": 0.0, "vorticity": 0.0, "viscosity": viscosity},
+    }, source="periodic_box")
+
+
+def with_velocity(scene, field):
+    base = Simulation(scene, backend="cpu")
+    st = base.state()
+    st["velocity"] = field(st["position"].astype(np.float64)).astype(np.float32)
+    return Simulation.from_arrays(scene, st, backend="cpu")
+
+
+def shear_wave(p, speed=0.1, k=2 * math.pi):
+    u = np.zeros_like(p)
+    u[:, 0] = speed * np.sin(k * p[:, 1])
+    return u
+
+
+def taylor_green(p, speed=0.1, k=2 * math.pi):
+    u = np.zeros_like(p)
+    u[:, 0] = speed * np.sin(k * p[:, 0]) * np.cos(k * p[:, 1])
+    u[:, 1] = -speed * np.cos(k * p[:, 0]) * np.sin(k * p[:, 1])
+    return u
+
+
+@pytest.mark.parametrize("speed", [0.1])
+def test_shear_wave_decays_at_the_rate_its_viscosity_implies(speed):
+    # u = U sin(k y) x: du/dt = nu lap u = -nu k^2 u, so KE ~ exp(-2 nu k^2 t), at any amplitude.
+    nu, k, steps = 2e-3, 2 * math.pi, 100                # nu dt / d^2 = 0.02 (explicit-stable)
+    sim = with_velocity(periodic_box(nu), lambda p: shear_wave(p, speed, k))
+    ke0 = initial_kinetic_energy(sim)
+    ke = kinetic_energy_series(sim, steps)
+    t = sim.scene.time.dt * np.arange(1, steps + 1)
+    rate = -np.polyfit(t, np.log(ke / ke0), 1)[0]
+    assert rate == pytest.approx(2 * nu * k * k, rel=0.10)
+    st = sim.state()
+    momentum = (st["mass"][:, None].astype(np.float64) * st["velocity"]).sum(axis=0)
+    scale = float(st["mass"].astype(np.float64).sum()) * speed
+    assert np.abs(momentum).max() < 1e-5 * scale           # the pairwise viscosity conserves momentum
+
+
+def test_inviscid_shear_wave_and_taylor_green_vortex_never_gain_energy():
+    for field in (shear_wave, taylor_green):
+        sim = with_velocity(periodic_box(0.0), field)
+        ke0 = initial_kinetic_energy(sim)
+        ke = kinetic_energy_series(sim, 80)
+        assert ke.max() <= ke0 * (1 + 1e-6)
+
+
+def gravity_wave(modes_x, modes_y, periods, dt=5.0, backend="cpu"):
+    scene = load_scene("stratified").replace(**{"wave.modes_x": modes_x, "wave.modes_y": modes_y,
+                                                "time.dt": dt})
+    a = scene.atmosphere
+    Lx, Ly = scene.domain.size[:2]
+    kx, ky = 2 * math.pi * modes_x / Lx, math.pi * modes_y / Ly
+    n2 = a.buoyancy / a.ground_temperature * (a.dry_lapse_rate - a.lapse_rate)
+    omega = math.sqrt(n2) * kx / math.hypot(kx, ky)
+    steps = int(round(periods * 2 * math.pi / omega / dt))
+    sim = Simulation(scene, backend=backend)
+    energy, amp, times = [], [], []
+    for _ in range(steps):
+        sim.step(1)
+        s = sim.stats()
+        energy.append(s["kinetic_energy"] + s["potential_energy"])
+        st = sim.state()
+        p = st["position"].astype(np.float64)
+        mode = np.cos(kx * p[:, 0]) * np.sin(ky * p[:, 1])
+        amp.append(-(st["velocity"][:, 1] * mode).sum() / (mode * mode).sum())
+        times.append(sim.time)
+    amp, times = np.array(amp), np.array(times)
+    crossings = [times[i] - amp[i] * (times[i + 1] - times[i]) / (amp[i + 1] - amp[i])
+                 for i in range(len(amp) - 1) if amp[i] * amp[i + 1] < 0]
+    period = 2 * np.mean(np.diff(crossings))
+    return np.array(energy), period, 2 * math.pi / omega
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gravity_wave_keeps_its_energy_over_two_periods(backend):
+    energy, period, expected = gravity_wave(1, 1, periods=2.0, backend=backend)
+    assert period == pytest.approx(expected, rel=0.03)
+    # Kinetic + available potential energy: bounded (no growth) and within 20% of its start over two
+    # periods at dt = 5 s (measured: 0.84-1.00; the paper's order of eq. 6-7 grew it 10x).
+    assert energy.max() <= 1.02 * energy[0]
+    assert energy.min() >= 0.80 * energy[0]
+
+
+@pytest.mark.parametrize("modes", [(2, 1), (1, 2)])
+def test_gravity_wave_frequency_of_higher_modes(modes):
+    energy, period, expected = gravity_wave(*modes, periods=1.5)
+    assert period == pytest.approx(expected, rel=0.03)
+    assert energy.max() <= 1.02 * energy[0]
+
+
+def heated_box(steps=100, backend="cpu"):
+    """A dry, closed, completely filled 800 x 3200 x 800 m atmosphere heated from the ground (no smoothing)."""
+    scene = load_scene("growing").replace(**{
+        "domain.size": [800.0, 3200.0, 800.0], "particles.spacing": 50.0,
+        "atmosphere.initial_vapor_ratio": 0.1, "smoothing.kappa": 0.0})
+    return Simulation(scene, backend=backend, seed=0), steps
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_heated_closed_box_keeps_its_mass_in_place_and_closes_its_heat_budget(backend):
+    sim, steps = heated_box(backend=backend)
+    y0 = sim.state()["position"][:, 1]
+    edges = np.arange(0.0, 3201.0, 200.0)
+    counts0 = np.histogram(y0, edges)[0]
+    first = None
+    totals = {"heat_source": 0.0, "heat_latent": 0.0, "heat_adiabatic": 0.0, "heat_smoothing": 0.0}
+    for _ in range(steps):
+        sim.step(1)
+        s = sim.stats()
+        first = first if first is not None else s
+        for key in totals:
+            totals[key] += s[key]
+    s = sim.stats()
+    y = sim.state()["position"][:, 1]
+    counts = np.histogram(y, edges)[0]
+    # Incompressible in both directions: the mass centre and every 200 m layer stay (measured at this
+    # commit: +6 m and 2.5% over 200 s, where the unilateral position projection gave +14 m and 8%).
+    assert abs(float(y.mean()) - float(y0.mean())) < 8.0
+    assert np.abs(counts / counts0 - 1).max() < 0.04
+    assert s["density_deficit_mean"] < 0.01 and s["density_excess_mean"] < 0.01
+    # Heat budget: the mean warming is the sum of the budget's terms (each computed on its own) ...
+    start_mean = first["mean_temperature"] - sum(first[k] for k in totals)
+    warming = s["mean_temperature"] - start_mean
+    assert warming == pytest.approx(sum(totals.values()), rel=1e-3)
+    # ... the source is what S_e x (heated fraction of the mass) x time gives ...
+    a = sim.scene.atmosphere
+    layer = sim.scene.atmosphere.heating_depth / sim.scene.domain.size[1]
+    assert totals["heat_source"] == pytest.approx(a.heating_rate * layer * steps * sim.scene.time.dt, rel=0.25)
+    # ... smoothing adds nothing, and dry air releases no latent heat.
+    assert abs(totals["heat_smoothing"]) < 1e-6 and abs(totals["heat_latent"]) < 1e-6
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_smoothing_and_water_budget_of_a_cloudy_run(backend):
+    scene = load_scene("growing").replace(**{"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0,
+                                             "atmosphere.initial_vapor_ratio": 0.95, "smoothing.kappa": 0.1,
+                                             "smoothing.fields": ["temperature", "vapor", "cloud"]})
+    sim = Simulation(scene, backend=backend, seed=1)
+    water0 = None
+    latent = 0.0
+    for _ in range(150):
+        sim.step(1)
+        s = sim.stats()
+        water0 = water0 if water0 is not None else s["total_water"]
+        latent += s["heat_latent"]
+        assert abs(s["heat_smoothing"]) < 1e-6 * s["mean_temperature"]
+    assert abs(sim.stats()["total_water"] - water0) < 1e-6 * water0
+    st = sim.state()
+    m = st["mass"].astype(np.float64)
+    assert latent == pytest.approx(scene.atmosphere.latent_heat * np.sum(m * st["cloud"]) / m.sum(), rel=1e-3,
+                                   abs=1e-9)
