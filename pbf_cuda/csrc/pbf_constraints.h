@@ -197,7 +197,14 @@ struct PositionCorrection {
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
             float s = 0.0f;
             if (cp.scorr_k_lambda > 0.0f && !vel) {
-                float ratio = (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi)) * cp.scorr_inv_wdq;
+                // W / W(dq h) with the reference taken at each particle's own radius (W(dq h, h) ~ 1/h^3), so a
+                // fine pair at its own spacing feels what a level-0 pair does at its spacing.
+                float inv_wdq = cp.scorr_inv_wdq;
+                if (Adaptive) {
+                    float ri = hi / cp.h0, rj = hj / cp.h0;
+                    inv_wdq = cp.scorr_inv_wdq * 2.0f / (1.0f / (ri * ri * ri) + 1.0f / (rj * rj * rj));
+                }
+                float ratio = (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi)) * inv_wdq;
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
                 s = -cp.scorr_k_lambda * p;
