@@ -33,6 +33,7 @@ struct ConstraintParams {
     float scorr_k_lambda;   // scorr_k * lambda_ref
     int scorr_n;
     float scorr_inv_wdq;    // 1 / W(dq * h0)
+    float scorr_dq;         // dq / h
 };
 
 // Density (eq. 1, 18) and lambda (eq. 4) of fluid particle i.
@@ -197,17 +198,25 @@ struct PositionCorrection {
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
             float s = 0.0f;
             if (cp.scorr_k_lambda > 0.0f && !vel) {
-                // W / W(dq h) with the reference taken at each particle's own radius (W(dq h, h) ~ 1/h^3), so a
-                // fine pair at its own spacing feels what a level-0 pair does at its spacing.
-                float inv_wdq = cp.scorr_inv_wdq;
+                // W(r) / W(dq h) with the pair's own kernel (eq. 19) at dq times the pair's mean radius, so a fine
+                // pair at its own spacing feels what a level-0 pair does at its spacing.
+                float ratio;
                 if (Adaptive) {
-                    float ri = hi / cp.h0, rj = hj / cp.h0;
-                    inv_wdq = cp.scorr_inv_wdq * 2.0f / (1.0f / (ri * ri * ri) + 1.0f / (rj * rj * rj));
+                    float hm = cp.scorr_dq * 0.5f * (hi + hj);
+                    float wdq = poly6_sym(hm * hm, hi, hj);
+                    ratio = wdq > 0.0f ? poly6_sym(r2, hi, hj) / wdq : 0.0f;
+                } else {
+                    ratio = poly6(r2, hi) * cp.scorr_inv_wdq;
                 }
-                float ratio = (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi)) * inv_wdq;
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
                 s = -cp.scorr_k_lambda * p;
+                if (Adaptive) {
+                    // lambda_ref (a unit violation's lambda) scales as h^5 (sum |grad C|^2 / m ~ m / h^8, m ~ h^3),
+                    // so the displacement s grad W / rho0 scales with h at every level, as it does at level 0.
+                    float q = 0.5f * (hi + hj) / cp.h0;
+                    s *= q * q * q * q * q;
+                }
             }
             Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
             dp += (li * mj / mi + lambda[j] + s) * gw;

@@ -455,6 +455,7 @@ public:
         cp_.scorr_n = p_.scorr_n;
         float wdq = poly6(p_.scorr_dq * p_.h0 * p_.scorr_dq * p_.h0, p_.h0);
         cp_.scorr_inv_wdq = wdq > 0.0f ? 1.0f / wdq : 0.0f;
+        cp_.scorr_dq = p_.scorr_dq;
 
         atm_.ground_temperature = p_.ground_temperature;
         atm_.lapse_rate = p_.lapse_rate;
