@@ -8,12 +8,11 @@ import os
 import platform
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parent.parent.parent
 PACKAGES = ("numpy", "pandas", "pyarrow", "scipy", "jax", "jaxlib", "jax-cfd", "dask", "distributed",
-            "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm")
+            "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm", "xarray", "h5netcdf", "zarr")
 SCALES = ("cpu-smoke", "cpu", "gpu")
 
 
@@ -85,10 +84,8 @@ def versions() -> dict[str, str | None]:
             out[name] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
             out[name] = None
-    try:
-        out["cloudpbf"] = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
-    except (OSError, KeyError, tomllib.TOMLDecodeError):
-        out["cloudpbf"] = None
+    from pbf_cuda._version import version
+    out["cloudpbf"] = version()          # package metadata (works from a wheel, not only a checkout)
     return out
 
 
