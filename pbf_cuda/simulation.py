@@ -52,10 +52,11 @@ def _core():
 
 
 def available_backends() -> list[str]:
-    """Backends usable on this machine: 'cpu' always, 'cuda' when built and a device exists."""
-    core = _core()
+    """Backends usable on this machine: 'cpu' always, 'cuda' when built, a device exists and the build
+    carries kernels for its compute capability (see :mod:`pbf_cuda.cuda_arch`)."""
+    from .cuda_arch import cuda_problem
     out = ["cpu"]
-    if core.cuda_built() and core.cuda_device_count() > 0:
+    if cuda_problem() is None:
         out.append("cuda")
     return out
 
@@ -67,9 +68,8 @@ def _resolve_backend(backend: str) -> str:
     if backend not in ("cpu", "cuda"):
         raise ValueError(f"backend = {backend!r}: allowed 'auto', 'cpu', 'cuda'")
     if backend not in backends:
-        core = _core()
-        why = "the module was built without CUDA" if not core.cuda_built() else "no CUDA device is visible"
-        raise RuntimeError(f"backend 'cuda' is not available: {why}")
+        from .cuda_arch import cuda_problem
+        raise RuntimeError(f"backend 'cuda' is not available: {cuda_problem()}")
     return backend
 
 
