@@ -29,9 +29,17 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
-import click
+import importlib
+import types
+
 import typer
 import typer.rich_utils
+
+# The click that typer runs on: the click package up to typer 0.24, typer's own vendored copy from 0.25
+# on.  Exceptions must come from that one, or typer does not turn them into "Usage: ... Error: ..." and
+# exit code 2.
+_click_exceptions = importlib.import_module(typer.BadParameter.__module__)
+click = types.SimpleNamespace(UsageError=_click_exceptions.UsageError)
 
 # typer 0.19 escapes the "[default: ...]" / "[required]" of option help for rich's HTML export even when
 # rich_markup_mode is None, so plain help would print "\\[default: ...]".  Plain help has no markup
