@@ -17,6 +17,7 @@ else
 fi
 stage "device"; nvidia-smi -L; nvcc --version | tail -1
 stage "build"
+export CUDAARCHS=${CUDAARCHS:-native}   # this machine's GPU only: a faster build than the portable default
 python3 -m pip install -q --no-build-isolation --no-deps -e . > "$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
 python3 -c "import pbf_cuda; print('backends', pbf_cuda.available_backends())"
 stage "gpu tests"

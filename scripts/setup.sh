@@ -22,5 +22,12 @@ fi
 python=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[${extras}]"
+# Exact versions from constraints.txt (the lock CI and the demo use); CLOUDPBF_CONSTRAINTS=none takes the
+# newest versions pyproject.toml's ranges allow, CLOUDPBF_CONSTRAINTS=FILE another lock.
+constraints="${CLOUDPBF_CONSTRAINTS:-constraints.txt}"
+if [ "$constraints" = "none" ]; then
+  .venv/bin/python -m pip install -q -e ".[${extras}]"
+else
+  .venv/bin/python -m pip install -q -c "$constraints" -e ".[${extras}]"
+fi
 .venv/bin/python -c "import pbf_cuda; print('setup: pbf_cuda backends available:', pbf_cuda.available_backends())"

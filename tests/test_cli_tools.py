@@ -169,9 +169,12 @@ def test_run_cache_location(monkeypatch, tmp_path):
     assert runs.default_root() == tmp_path / "mine"
 
 
-def test_run_lock_is_portable_and_exclusive(tmp_path):
+@pytest.mark.parametrize("with_filelock", [True, False])
+def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock):
     from bench import runs
-    assert "import fcntl" not in (REPO / "bench" / "runs.py").read_text()
+    if not with_filelock:
+        monkeypatch.setitem(sys.modules, "filelock", None)      # a bare machine: the POSIX fallback
+    assert "\nimport fcntl" not in (REPO / "bench" / "runs.py").read_text()   # not at import time (Windows)
     order = []
 
     def hold():
@@ -252,3 +255,37 @@ def test_the_module_reports_its_architectures():
     built = _core.cuda_architectures()
     assert _core.cuda_built() or built == ""
     assert (_core.cuda_device_capability() >= 30) == (_core.cuda_device_count() > 0)
+
+
+# ---- dependency ranges and the lock ---------------------------------------------------------------
+def _requirements():
+    import tomllib
+    from packaging.requirements import Requirement
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    reqs = [Requirement(r) for r in project["dependencies"]]
+    for extra in project["optional-dependencies"].values():
+        reqs += [Requirement(r) for r in extra if not r.startswith("cloudpbf")]
+    return reqs
+
+
+def test_the_lock_satisfies_the_ranges():
+    from packaging.utils import canonicalize_name
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pins[canonicalize_name(name)] = version.strip()
+    for req in _requirements():
+        name = canonicalize_name(req.name)
+        assert name in pins, f"{req.name} is not pinned in constraints.txt"
+        assert req.specifier.contains(pins[name], prereleases=True), f"{name}=={pins[name]} outside {req}"
+
+
+def test_the_ranges_include_the_versions_of_the_gpu_results():
+    import json
+    from packaging.utils import canonicalize_name
+    used = json.loads((REPO / "reports" / "gpu" / "data" / "environment.json").read_text())["versions"]
+    ranges = {canonicalize_name(r.name): r.specifier for r in _requirements()}
+    for name in ("numpy", "pandas", "jax", "jaxlib", "scipy", "pyarrow", "matplotlib", "typer", "tqdm", "dask"):
+        if used.get(name):
+            assert ranges[canonicalize_name(name)].contains(used[name]), f"{name} {used[name]} not in {ranges[name]}"
