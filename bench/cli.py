@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import importlib
-import types
 
 import typer
 import typer.rich_utils
@@ -38,8 +37,8 @@ import typer.rich_utils
 # The click that typer runs on: the click package up to typer 0.24, typer's own vendored copy from 0.25
 # on.  Exceptions must come from that one, or typer does not turn them into "Usage: ... Error: ..." and
 # exit code 2.
-_click_exceptions = importlib.import_module(typer.BadParameter.__module__)
-click = types.SimpleNamespace(UsageError=_click_exceptions.UsageError)
+# `click.UsageError`, `click.BadParameter`, `click.ClickException`, ... below are that click's exceptions.
+click = importlib.import_module(typer.BadParameter.__module__)
 
 # typer 0.19 escapes the "[default: ...]" / "[required]" of option help for rich's HTML export even when
 # rich_markup_mode is None, so plain help would print "\\[default: ...]".  Plain help has no markup
@@ -73,7 +72,8 @@ class ScaleName(str, Enum):
 
 OutOpt = Annotated[Path, typer.Option("--out", help="output folder: data/ (CSV, JSON, renders) and index.html")]
 RunsRootOpt = Annotated[Optional[Path], typer.Option(
-    "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ in the repository)")]
+    "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ of the checkout, else the user "
+                        "cache folder, e.g. ~/.cache/cloudpbf/runs)")]
 ScaleOpt = Annotated[ScaleName, typer.Option(
     "--scale", help="smoke (CI, minutes), cpu (~50k particles), gpu (the paper's counts); auto: gpu if CUDA")]
 BackendOpt = Annotated[Backend, typer.Option("--backend", help="particle solver backend")]

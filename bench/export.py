@@ -72,10 +72,15 @@ def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None,
     ``density`` (kg/m^3) and the Shepard averages of temperature, vapor, cloud and velocity_x/y/z,
     with the CF attributes of :data:`pbf_cuda.export.FIELD_ATTRS`."""
     from bench import statistics
+    origin = np.zeros(3)
     if like is not None:
         shape = tuple(int(like.sizes[k]) for k in "xyz")
-        cell_size = np.array([float(like[k][1] - like[k][0]) if like.sizes[k] > 1 else 2 * float(like[k][0])
-                              for k in "xyz"])
+        centres = [np.asarray(like[k].values, dtype=np.float64) for k in "xyz"]
+        cell_size = np.array([c[1] - c[0] if len(c) > 1 else 2 * c[0] for c in centres])
+        origin = np.array([c[0] for c in centres]) - cell_size / 2
+        for k, c, d in zip("xyz", centres, cell_size):
+            if not np.allclose(np.diff(c), d, rtol=1e-9, atol=0):
+                raise ValueError(f"like: coordinate {k} is not a regular grid of cell centres")
     else:
         shape, cell_size = statistics.grid_for_scene(scene, resolution)
     fields = {k: state[k] for k in DEPOSITED if k in state}
@@ -84,10 +89,10 @@ def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None,
         fields[f"velocity_{axis}"] = vel[:, a]
     periodic = tuple(b == "periodic" for b in scene.domain.boundary)
     grid = statistics.deposit(state["position"], state["mass"], state["kernel_radius"], fields, shape, cell_size,
-                              periodic=periodic)
-    grid.pop("origin", None)
+                              periodic=periodic, origin=origin)
+    org = grid.pop("origin")
     size = grid.pop("cell_size")
-    return fields_to_xarray(grid, cell_size=size, time=time, step=step, attrs={
+    return fields_to_xarray(grid, cell_size=size, origin=org, time=time, step=step, attrs={
         "source": "cloudpbf particles (PBF) deposited with the poly6 kernel", "solver": "particles",
         "scene": scene.name, **dict(attrs or {})})
 
