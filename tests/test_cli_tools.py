@@ -289,3 +289,18 @@ def test_the_ranges_include_the_versions_of_the_gpu_results():
     for name in ("numpy", "pandas", "jax", "jaxlib", "scipy", "pyarrow", "matplotlib", "typer", "tqdm", "dask"):
         if used.get(name):
             assert ranges[canonicalize_name(name)].contains(used[name]), f"{name} {used[name]} not in {ranges[name]}"
+
+
+def test_environment_is_checked_against_the_lock(tmp_path):
+    from bench.studies.environment import environment, lock_check
+    lock = tmp_path / "constraints.txt"
+    lock.write_text(f"# comment\nnumpy=={np.__version__}\npandas==0.0.1\nno-such-package==1.0\n")
+    got = lock_check(lock)
+    assert got["matches"] is False
+    assert got["differs"] == {"pandas": {"locked": "0.0.1", "installed": pd.__version__},
+                              "no-such-package": {"locked": "1.0", "installed": None}}
+    assert lock_check(tmp_path / "missing.txt") is None
+    env = environment("cpu", "cpu")
+    assert env["lock"]["file"] == "constraints.txt"
+    assert env["lock"]["matches"] == (env["lock"]["differs"] == {})
+    assert env["lock"]["differs"].get("numpy") is None     # this environment's numpy is the locked one

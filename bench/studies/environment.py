@@ -89,6 +89,27 @@ def versions() -> dict[str, str | None]:
     return out
 
 
+def lock_check(path: str | Path | None = None) -> dict | None:
+    """Installed versions against the lock file (constraints.txt of the checkout): ``{"file", "matches",
+    "differs": {package: {"locked", "installed"}}}``; None where there is no lock file (a wheel install)."""
+    path = Path(path) if path is not None else REPO_ROOT / "constraints.txt"
+    if not path.is_file():
+        return None
+    differs = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if "==" not in line:
+            continue
+        name, locked = (part.strip() for part in line.split("==", 1))
+        try:
+            installed = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            installed = None
+        if installed != locked:
+            differs[name] = {"locked": locked, "installed": installed}
+    return {"file": path.name, "matches": not differs, "differs": differs}
+
+
 def environment(scale: str, backend: str) -> dict:
     """The environment.json record: device, backend, commit, date, python, versions, scale."""
     if scale not in SCALES:
@@ -96,7 +117,7 @@ def environment(scale: str, backend: str) -> dict:
     return {"device": device_description(backend), "backend": backend, "commit": commit(),
             "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "python": sys.version.split()[0], "platform": platform.platform(), "cpu": cpu_name(),
-            "gpus": list(gpu_names()), "versions": versions(), "scale": scale}
+            "gpus": list(gpu_names()), "versions": versions(), "lock": lock_check(), "scale": scale}
 
 
 def write_environment(out_dir: str | Path, scale: str, backend: str) -> Path:
