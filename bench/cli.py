@@ -9,6 +9,14 @@
     cloudpbf scaling                         ms per step against particle and cell counts
     cloudpbf report                          HTML report from OUT/data
     cloudpbf demo                            all of the above at a scale that fits this machine
+    cloudpbf export RUN --format vtp         a run's snapshots for ParaView (vtu, vtp) or xarray (netcdf, zarr)
+    cloudpbf adaptive-cost                   split and merge cost of the adaptive scenes (GPU benchmark)
+    cloudpbf constant-gravity                growing with a constant gravity added (the cycling deviation)
+    cloudpbf pbf-scaling                     ms per particle step at given sizes, one CSV (GPU benchmark)
+    cloudpbf grid-scaling                    ms per grid step at n^3 cells on CPU and GPU, one CSV
+    cloudpbf --version                       the installed version
+
+Lists are comma-separated everywhere: --sizes 250000,1000000 --gravity 0.1,0.3.
 
 Bad arguments exit with code 2 and a message naming the argument and what is allowed.
 See docs/harness.md.
@@ -21,8 +29,21 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
-import click
+import importlib
+
 import typer
+import typer.rich_utils
+
+# The click that typer runs on: the click package up to typer 0.24, typer's own vendored copy from 0.25
+# on.  Exceptions must come from that one, or typer does not turn them into "Usage: ... Error: ..." and
+# exit code 2.
+# `click.UsageError`, `click.BadParameter`, `click.ClickException`, ... below are that click's exceptions.
+click = importlib.import_module(typer.BadParameter.__module__)
+
+# typer 0.19 escapes the "[default: ...]" / "[required]" of option help for rich's HTML export even when
+# rich_markup_mode is None, so plain help would print "\\[default: ...]".  Plain help has no markup
+# to escape: show it as written.
+typer.rich_utils.escape_before_html_export = lambda text: text.strip()
 
 app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   rich_markup_mode=None,
@@ -51,7 +72,8 @@ class ScaleName(str, Enum):
 
 OutOpt = Annotated[Path, typer.Option("--out", help="output folder: data/ (CSV, JSON, renders) and index.html")]
 RunsRootOpt = Annotated[Optional[Path], typer.Option(
-    "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ in the repository)")]
+    "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ of the checkout, else the user "
+                        "cache folder, e.g. ~/.cache/cloudpbf/runs)")]
 ScaleOpt = Annotated[ScaleName, typer.Option(
     "--scale", help="smoke (CI, minutes), cpu (~50k particles), gpu (the paper's counts); auto: gpu if CUDA")]
 BackendOpt = Annotated[Backend, typer.Option("--backend", help="particle solver backend")]
@@ -116,6 +138,38 @@ def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Ba
                        backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
     write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran
     return ctx
+
+
+def _parse_list(text: str | None, name: str, kind=int, lo=None, hi=None, example: str = "1,2,3") -> list | None:
+    """A comma-separated list option (the one list syntax of every command): '0.1,0.3' -> [0.1, 0.3]."""
+    if text is None:
+        return None
+    try:
+        values = [kind(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise typer.BadParameter(f"'{text}': expected comma-separated {kind.__name__}s, e.g. {example}",
+                                 param_hint=f"'{name}'") from None
+    if not values:
+        raise typer.BadParameter(f"'{text}': expected at least one value, e.g. {example}", param_hint=f"'{name}'")
+    for v in values:
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise typer.BadParameter(f"'{v}': allowed range [{lo}, {hi}]", param_hint=f"'{name}'")
+    return values
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        from pbf_cuda._version import version
+        typer.echo(f"cloudpbf {version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    version: Annotated[bool, typer.Option("--version", callback=_version_callback, is_eager=True,
+                                          help="print the installed cloudpbf version and exit")] = False,
+) -> None:
+    """Adaptive cloud simulation with Position Based Fluids: runs, studies and the report."""
 
 
 # ---- commands -------------------------------------------------------------------------------------
@@ -308,6 +362,135 @@ def demo(
         typer.echo(f"report: {index}")
     if failed:
         raise typer.Exit(1)
+
+
+class ExportFormat(str, Enum):
+    vtu = "vtu"
+    vtp = "vtp"
+    netcdf = "netcdf"
+    zarr = "zarr"
+
+
+@app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(metavar="RUN", help="a run directory (printed by `cloudpbf run`)")],
+    format: Annotated[ExportFormat, typer.Option("--format", "-f", help="vtu/vtp: a ParaView time series (.pvd "
+                                                 "+ one file per snapshot); netcdf/zarr: an xarray Dataset "
+                                                 "(time, x, y, z) with CF attributes")] = ExportFormat.vtp,
+    out: Annotated[Optional[Path], typer.Option("--out", help="where to write (default: RUN/export/...)")] = None,
+    resolution: Annotated[Optional[str], typer.Option(
+        help="netcdf/zarr of a particle run: deposition grid nx,ny,nz (default: one cell per particle spacing, "
+             "the grid baseline's grid)")] = None,
+) -> None:
+    """Export a run's stored snapshots for ParaView (vtu, vtp) or xarray (netcdf, zarr).
+
+    Particle runs: every particle with every field (units in the field data) as .vtu/.vtp, or deposited
+    on the grid baseline's grid as NetCDF/zarr, so a particle run and a grid run of one scene compare cell
+    by cell.  Grid runs: the cell-centred fields.  (.bgeo: no maintained writer exists on PyPI.)"""
+    from bench.export import export_run
+    cells = _parse_list(resolution, "--resolution", int, 1, 4096, "64,64,64")
+    if cells is not None and len(cells) != 3:
+        raise typer.BadParameter(f"'{resolution}': expected three cell counts nx,ny,nz", param_hint="'--resolution'")
+    try:
+        path = export_run(run_dir, format.value, out, resolution=tuple(cells) if cells else None)
+    except FileNotFoundError as exc:
+        raise typer.BadParameter(str(exc), param_hint="'RUN'") from None
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+    typer.echo(f"wrote {path}")
+
+
+@app.command("adaptive-cost")
+def adaptive_cost_cmd(
+    spacing: Annotated[float, typer.Option(min=5.0, max=1000.0, help="level-0 lattice spacing, m")] = 45.0,
+    steps: Annotated[int, typer.Option(min=3, max=100_000, help="steps per run")] = 500,
+    scenes: Annotated[str, typer.Option(help="adaptive scenes, comma-separated")] = "growing_adaptive,cycling_adaptive",
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/adaptive_cost.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """Split and merge ms per step of the adaptive scenes on a given level-0 spacing (GPU benchmark)."""
+    from bench import runs
+    from bench.studies import adaptive_cost as ac
+    names = _parse_list(scenes, "--scenes", str, example="growing_adaptive,cycling_adaptive")
+    for name in names:
+        _load_scene(name)
+    if steps <= ac.WARMUP_STEPS:
+        raise typer.BadParameter(f"{steps}: must be > {ac.WARMUP_STEPS} (the warm-up steps)", param_hint="'--steps'")
+    frame = ac.adaptive_cost(names, spacing, steps, backend.value, runs_root, quiet)
+    runs.write_csv(frame, out)
+    typer.echo(frame[list(ac.COLUMNS)].to_string(index=False))
+    typer.echo(f"targets: splitting <= {ac.SPLIT_TARGET_MS} ms, merging <= {ac.MERGE_TARGET_MS} ms per step; "
+               f"wrote {out}")
+
+
+@app.command("constant-gravity")
+def constant_gravity_cmd(
+    gravity: Annotated[str, typer.Option(help="constant gravities g_c to add, m/s^2, comma-separated")] = "0.1,0.3,1.0",
+    particles: Annotated[Optional[int], typer.Option(min=100, max=10**9, help="resample the scenes to about this many")] = None,
+    steps: Annotated[Optional[int], typer.Option(min=1, max=10**7, help="steps (default: the scenes' 500)")] = None,
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/constant_gravity.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """`growing` with a constant gravity added, beside the shipped `cycling` (README: Deviations)."""
+    import pandas as pd
+    from bench import runs
+    from bench.studies import constant_gravity as cg
+    values = _parse_list(gravity, "--gravity", float, 1e-9, 100.0, "0.1,0.3,1.0")
+    frame = cg.constant_gravity(values, particles, steps, backend=backend.value, runs_root=runs_root, quiet=quiet)
+    runs.write_csv(frame, out)
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        typer.echo(frame[[c for c in cg.COLUMNS if c in frame.columns]].to_string(index=False))
+    typer.echo(f"wrote {out}")
+
+
+@app.command("pbf-scaling")
+def pbf_scaling_cmd(
+    sizes: Annotated[str, typer.Option(help="particle counts, comma-separated")] = "250000,1000000,4000000",
+    steps: Annotated[int, typer.Option(min=1, max=10_000, help="timed steps per size (after 2 warm-up steps)")] = 20,
+    iterations: Annotated[int, typer.Option(min=1, max=200, help="PBF solver iterations")] = 4,
+    scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/pbf_scaling.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """ms per particle step at the given sizes, one CSV (the GPU benchmark form of `scaling`)."""
+    from bench import runs
+    from bench.studies import scaling as sc
+    counts = _parse_sizes(sizes, "--sizes", 100)
+    _load_scene(scene)
+    frame = sc.pbf_scaling(counts, backend.value, runs_root, scene, iterations, steps, quiet)
+    runs.write_csv(frame, out)
+    typer.echo(frame[list(sc.PBF_COLUMNS)].to_string(index=False))
+    typer.echo(f"wrote {out}")
+
+
+@app.command("grid-scaling")
+def grid_scaling_cmd(
+    sizes: Annotated[str, typer.Option(help="cells per axis of n^3 grids, comma-separated")] = "32,64,128",
+    steps: Annotated[int, typer.Option(min=1, max=100_000, help="timed steps per size")] = 20,
+    warmup: Annotated[int, typer.Option(min=0, max=1000, help="untimed steps after compilation")] = 2,
+    scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
+    devices: Annotated[str, typer.Option(help="all, cpu, gpu or cpu,gpu")] = "all",
+    dtypes: Annotated[Optional[str], typer.Option(
+        help="float32 and/or float64, comma-separated (default: float64 on the CPU, float32 on the GPU)")] = None,
+    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/grid_scaling.csv"),
+    commit: Annotated[Optional[str], typer.Option(help="commit to record (default: git rev-parse --short HEAD)")] = None,
+) -> None:
+    """ms per grid-baseline step at n^3 cells on the CPU and the GPU (appends to one CSV)."""
+    from bench import grid_scaling as gs
+    cells = _parse_sizes(sizes, "--sizes", 2)
+    kinds = _parse_list(dtypes, "--dtypes", str, example="float32,float64")
+    bad = [d for d in kinds or [] if d not in ("float32", "float64")]
+    if bad:
+        raise typer.BadParameter(f"'{bad[0]}': allowed float32, float64", param_hint="'--dtypes'")
+    _load_scene(scene)
+    try:
+        gs.run_grid_scaling(cells, steps=steps, warmup=warmup, scene=scene, devices=devices, dtypes=kinds,
+                            out=out, commit=commit, echo=typer.echo)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,6 @@
 """Grid baseline scaling: ms per step at n^3 cells, on the CPU and on the GPU, through jax.
 
-    python -m bench.grid_scaling --sizes 32 64 128 --steps 20 --out reports/gpu/grid_scaling.csv
+    cloudpbf grid-scaling --sizes 32,64,128 --steps 20 --out reports/gpu/grid_scaling.csv
 
 Each (size, device, dtype) runs the scene (default ``growing``, its physics and dt) on an n x n x n grid
 from its initial state: compile (not timed), ``--warmup`` steps, then ``--steps`` timed steps of the fused,
@@ -11,7 +11,6 @@ the jax device's ``device_kind`` (e.g. ``cpu``, ``NVIDIA H100 80GB HBM3``), comm
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import subprocess
 import sys
@@ -47,7 +46,7 @@ def _platforms(requested):
     wanted = [r.strip() for r in requested.split(",")]
     missing = [w for w in wanted if w not in have]
     if missing:
-        raise SystemExit(f"grid_scaling: no jax device for {', '.join(missing)} (available: {', '.join(have)})")
+        raise ValueError(f"grid-scaling: no jax device for {', '.join(missing)} (available: {', '.join(have)})")
     return wanted
 
 
@@ -76,7 +75,7 @@ def check_header(path: Path) -> None:
         with open(path, newline="") as fh:
             header = next(csv.reader(fh), None)
         if header is not None and tuple(header) != COLUMNS:
-            raise SystemExit(f"grid_scaling: {path} has columns {header}, expected {','.join(COLUMNS)}")
+            raise ValueError(f"grid-scaling: {path} has columns {header}, expected {','.join(COLUMNS)}")
 
 
 def append_rows(path: Path, rows) -> None:
@@ -91,39 +90,34 @@ def append_rows(path: Path, rows) -> None:
             w.writerow(r)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.grid_scaling", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128], help="cells per axis (n^3 grids)")
-    ap.add_argument("--steps", type=int, default=20, help="timed steps per size")
-    ap.add_argument("--warmup", type=int, default=2, help="untimed steps after compilation")
-    ap.add_argument("--scene", default="growing", help="scene name or path (default: growing)")
-    ap.add_argument("--devices", default="all", help="'all' (default), 'cpu', 'gpu' or 'cpu,gpu'")
-    ap.add_argument("--dtypes", nargs="+", default=None,
-                    help="float32 and/or float64 (default: float64 on the CPU, float32 on the GPU)")
-    ap.add_argument("--out", default="reports/gpu/grid_scaling.csv", help="CSV to append to")
-    ap.add_argument("--commit", default=None, help="commit to record (default: git rev-parse --short HEAD)")
-    args = ap.parse_args(argv)
-    if args.steps < 1:
-        ap.error("--steps must be >= 1")
-
+def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
+                     out="reports/gpu/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
+    """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
     from grid_baseline._pbf import load_scene
-    scene = load_scene(args.scene)
-    commit = args.commit or git_commit()
-    out = Path(args.out)
+    if steps < 1:
+        raise ValueError("--steps must be >= 1")
+    scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene
+    commit = commit or git_commit()
+    out = Path(out)
     check_header(out)
     rows = []
-    for platform in _platforms(args.devices):
-        dtypes = args.dtypes or (["float64"] if platform == "cpu" else ["float32"])
-        for dtype in dtypes:
-            for n in args.sizes:
-                r = measure(scene, n, platform, dtype, args.steps, args.warmup)
+    for platform in _platforms(devices):
+        for dtype in dtypes or (["float64"] if platform == "cpu" else ["float32"]):
+            for n in sizes:
+                r = measure(scene, n, platform, dtype, steps, warmup)
                 r["commit"] = commit
                 rows.append(r)
                 append_rows(out, [r])
-                print(f"{platform:4s} {dtype:8s} {n:4d}^3 = {r['cells']:9d} cells: {float(r['step_ms']):10.3f} ms/step "
-                      f"(compile {r['compile_s']:.1f} s, substeps {r['substeps']}, {r['device']})", flush=True)
-    print(f"wrote {len(rows)} rows to {out}")
-    return 0
+                echo(f"{platform:4s} {dtype:8s} {n:4d}^3 = {r['cells']:9d} cells: {float(r['step_ms']):10.3f} ms/step "
+                     f"(compile {r['compile_s']:.1f} s, substeps {r['substeps']}, {r['device']})")
+    echo(f"wrote {len(rows)} rows to {out}")
+    return rows
+
+
+def main(argv=None) -> int:
+    """``python -m bench.grid_scaling ARGS`` is ``cloudpbf grid-scaling ARGS``."""
+    from bench.cli import main as cli_main
+    return cli_main(["grid-scaling", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -27,14 +27,14 @@ complete too: ``result.json`` holds ``stable: false`` with the reason, the step 
 ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
 file is written to a temporary name and moved into place with ``os.replace``.
 
-The default root is ``runs/`` in the repository, or ``$CLOUDPBF_RUNS``.
+The default root is ``$CLOUDPBF_RUNS``, else ``runs/`` in a source checkout, else the user cache folder
+(:func:`default_root`).
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
 import datetime as _dt
-import fcntl
 import functools
 import hashlib
 import json
@@ -70,10 +70,23 @@ CODE_SOURCES = {
 STATS_VECTOR_AXES = "xyz"
 
 
+def is_checkout(root: Path = REPO_ROOT) -> bool:
+    """True when the code runs from a source checkout (editable install or PYTHONPATH), not from an
+    installed wheel: the folder above the packages holds pyproject.toml and is no site-packages."""
+    return (root / "pyproject.toml").is_file() and not {"site-packages", "dist-packages"} & set(root.parts)
+
+
 def default_root() -> Path:
-    """Where runs live: $CLOUDPBF_RUNS, else runs/ in the repository (gitignored)."""
+    """Where runs live: $CLOUDPBF_RUNS; else runs/ in the checkout (gitignored) when running from one;
+    else the user cache folder (platformdirs: ~/.cache/cloudpbf/runs on Linux, ~/Library/Caches/cloudpbf/runs
+    on macOS, %LOCALAPPDATA%\\cloudpbf\\Cache\\runs on Windows), never inside site-packages."""
     env = os.environ.get("CLOUDPBF_RUNS")
-    return Path(env) if env else REPO_ROOT / "runs"
+    if env:
+        return Path(env)
+    if is_checkout():
+        return REPO_ROOT / "runs"
+    import platformdirs
+    return Path(platformdirs.user_cache_dir("cloudpbf", appauthor=False)) / "runs"
 
 
 # ---- atomic writes ---------------------------------------------------------------------------
@@ -568,12 +581,19 @@ def _now() -> str:
 @contextlib.contextmanager
 def _locked(directory: Path):
     """Exclusive lock on the run directory, so two processes never run the same spec at once."""
-    with open(directory / ".lock", "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    try:
+        from filelock import FileLock  # portable: fcntl on POSIX, msvcrt on Windows (the harness extra)
+    except ImportError:                # a bare POSIX machine without it (e.g. a GPU node): plain flock
+        import fcntl
+        with open(directory / ".lock", "a+") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+        return
+    with FileLock(str(directory / ".lock")):
+        yield
 
 
 def _merge_timings(base: dict, extra: dict) -> dict:
@@ -684,7 +704,7 @@ class _Run:
         total = spec.total_steps
         chunk = 1 if spec.record_steps else 10
         failure = None
-        from tqdm.auto import tqdm
+        from pbf_cuda.progress import progress_bar as tqdm
         bar = tqdm(total=total, initial=sim.step_count, desc=f"{spec.solver} {spec.scene.name}", unit="step",
                    disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
         try:
@@ -747,7 +767,7 @@ class _Run:
                        f"{sim.scene.adaptive.capacity}); the run goes on without them")
             self.log(message)
             if not self.quiet:
-                from tqdm.auto import tqdm
+                from pbf_cuda.progress import progress_bar as tqdm
                 tqdm.write(f"warning: {message}")
             self.rejects_logged = rejects
         self.rejects = rejects

@@ -6,7 +6,7 @@ through the *same* diagnostics code (:func:`diagnostics`,
 :func:`vertical_profiles`), so any difference between the solvers is physics,
 not bookkeeping.
 
-Conventions (the project's, see SPEC.md):
+Conventions (the project's, see docs/design.md):
 
 * grids are ``(nx, ny, nz)`` arrays on cell centres, ``y`` (axis 1) is up;
   cell ``j`` along y spans ``[origin_y + j dy, origin_y + (j + 1) dy]``;

@@ -32,6 +32,7 @@ try:  # the normal case: the particle solver's package imports
     from pbf_cuda import scene as scene_module  # noqa: F401
     from pbf_cuda import noise as noise_module  # noqa: F401
     from pbf_cuda import files as files_module  # noqa: F401
+    from pbf_cuda import export as export_module  # noqa: F401
 except Exception:  # pragma: no cover - depends on the state of pbf_cuda on this machine
     for _k in [k for k in sys.modules if k == "pbf_cuda" or k.startswith("pbf_cuda.")]:
         if sys.modules.get(_k) is None or not hasattr(sys.modules[_k], "__file__"):
@@ -39,6 +40,7 @@ except Exception:  # pragma: no cover - depends on the state of pbf_cuda on this
     scene_module = _load_file("scene")
     noise_module = _load_file("noise")
     files_module = _load_file("files")
+    export_module = _load_file("export")
 
 load_scene = scene_module.load_scene
 scene_from_dict = scene_module.scene_from_dict
@@ -46,6 +48,7 @@ SceneError = scene_module.SceneError
 noise_offset_for_seed = noise_module.noise_offset_for_seed
 reference_simplex2 = noise_module.simplex2
 atomic_savez = files_module.atomic_savez
+fields_to_xarray = export_module.fields_to_xarray
 
 
 def is_scene(obj) -> bool:

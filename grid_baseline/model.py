@@ -27,7 +27,7 @@ applied a second time.  theta' obeys D theta'/Dt = -u_y (Gamma_d - Gamma_env),
 applied after advection.  T - T0(y) = theta' exactly, so buoyancy is computed
 from a small number even in float32, and a flux-form scheme's
 (divergence error) * (advected value) term acts on a few kelvin, not on 300 K
-(SPEC.md: float32 wall divergence would otherwise create spurious heating).
+(docs/design.md: float32 wall divergence would otherwise create spurious heating).
 Temperature smoothing (section 4.1) is a particle concept; the grid's own
 numerical diffusion plays that role and smoothing.kappa is ignored.
 """

@@ -262,6 +262,16 @@ class GridSimulation:
         return {"temperature": T, "potential_temperature": T + p.dry_lapse_rate * yc[None, :, None],
                 "vapor": st["vapor"], "cloud": st["cloud"], "velocity": vel, "x": xc, "y": yc, "z": zc}
 
+    def to_xarray(self):
+        """fields() as an ``xarray.Dataset``: temperature, potential_temperature, vapor, cloud and
+        velocity_x/_y/_z on the cell-centre coordinates x, y, z (m, y up) with CF attributes (units,
+        standard_name, long_name, axis), and the scalar coordinates time (s) and step.  The same
+        layout as particles deposited by ``bench.export.particles_to_xarray``, so the two solvers
+        compare directly in xarray.  Needs xarray (``pip install "cloudpbf[io]"``)."""
+        return _pbf.fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
+            "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": self.scene.name,
+            "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device)})
+
     def state(self) -> dict[str, np.ndarray]:
         """The particle solver's state format, one sample per cell centre: position (N,3) m, velocity (N,3)
         m/s, temperature K, vapor and cloud kg/kg, mass kg (rest_density * cell volume), level (0),

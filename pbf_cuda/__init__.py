@@ -9,10 +9,11 @@ import os
 # slow every step by an order of magnitude as soon as anything else shares the cores.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from ._version import __version__
 from .scene import Scene, SceneError, list_scenes, load_scene, scene_from_dict
 from .simulation import InstabilityError, Simulation, available_backends
 
 __all__ = [
-    "Scene", "SceneError", "list_scenes", "load_scene", "scene_from_dict",
+    "__version__", "Scene", "SceneError", "list_scenes", "load_scene", "scene_from_dict",
     "Simulation", "InstabilityError", "available_backends",
 ]

@@ -52,10 +52,11 @@ def _core():
 
 
 def available_backends() -> list[str]:
-    """Backends usable on this machine: 'cpu' always, 'cuda' when built and a device exists."""
-    core = _core()
+    """Backends usable on this machine: 'cpu' always, 'cuda' when built, a device exists and the build
+    carries kernels for its compute capability (see :mod:`pbf_cuda.cuda_arch`)."""
+    from .cuda_arch import cuda_problem
     out = ["cpu"]
-    if core.cuda_built() and core.cuda_device_count() > 0:
+    if cuda_problem() is None:
         out.append("cuda")
     return out
 
@@ -67,9 +68,8 @@ def _resolve_backend(backend: str) -> str:
     if backend not in ("cpu", "cuda"):
         raise ValueError(f"backend = {backend!r}: allowed 'auto', 'cpu', 'cuda'")
     if backend not in backends:
-        core = _core()
-        why = "the module was built without CUDA" if not core.cuda_built() else "no CUDA device is visible"
-        raise RuntimeError(f"backend 'cuda' is not available: {why}")
+        from .cuda_arch import cuda_problem
+        raise RuntimeError(f"backend 'cuda' is not available: {cuda_problem()}")
     return backend
 
 
@@ -206,10 +206,40 @@ class Simulation:
                 self._solver.set_projection_impulse(np.ascontiguousarray(impulse, np.float32))
 
     # ---- stepping ----------------------------------------------------------------------
-    def step(self, n: int = 1) -> None:
-        """Advance n steps. Raises InstabilityError (the state then holds the failing step)."""
+    def step(self, n: int = 1, progress=None) -> None:
+        """Advance n steps. Raises InstabilityError (the state then holds the failing step).
+
+        ``progress``: None (silent), ``True`` (a progress bar on stderr, plain periodic lines when
+        stderr is not a terminal) or a callable ``progress(done, total)`` called after every chunk of
+        steps (about 1% of ``n``, at least one step).  With a progress report the steps run in
+        chunks; the result is the same bits as one call."""
         if n < 0:
             raise ValueError(f"n = {n}: must be >= 0")
+        n = int(n)
+        if progress is None or progress is False or n == 0:
+            self._step_chunk(n)
+            return
+        report = progress
+        reporter = None
+        if progress is True:
+            from .progress import Progress
+            reporter = Progress(total=n, desc=f"{self.scene.name} ({self.backend})", unit="step")
+            report = lambda done, total: reporter.update_to(done)   # noqa: E731
+        elif not callable(progress):
+            raise TypeError(f"progress = {progress!r}: expected None, True or a callable(done, total)")
+        chunk = max(1, n // 100)
+        done = 0
+        try:
+            while done < n:
+                k = min(chunk, n - done)
+                self._step_chunk(k)
+                done += k
+                report(done, n)
+        finally:
+            if reporter is not None:
+                reporter.close()
+
+    def _step_chunk(self, n: int) -> None:
         try:
             self._solver.step(int(n))
         except RuntimeError as exc:
@@ -219,6 +249,15 @@ class Simulation:
                 raise InstabilityError(int(step), reason, [int(i) for i in ids.split(",") if i],
                                        int(last_good)) from None
             raise
+
+    def to_pyvista(self, kind: str = "polydata"):
+        """The particles as a pyvista dataset of points (``"polydata"`` for .vtp, ``"unstructured"``
+        for .vtu): every array of :meth:`state` as point data, units in the field data
+        (``<name>_unit``), the simulated time as ``TimeValue`` (s).  ``mesh.save("particles.vtp")``
+        writes a file ParaView opens.  Needs pyvista (``pip install "cloudpbf[viz]"``)."""
+        from .export import state_to_pyvista
+        return state_to_pyvista(self.state(), kind, time=self.time, step=self.step_count,
+                                scene_name=self.scene.name)
 
     def adapt(self) -> None:
         """Run only the split/merge phase (section 5.2) on the current state."""

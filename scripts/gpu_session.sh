@@ -17,6 +17,7 @@ else
 fi
 stage "device"; nvidia-smi -L; nvcc --version | tail -1
 stage "build"
+export CUDAARCHS=${CUDAARCHS:-native}   # this machine's GPU only: a faster build than the portable default
 python3 -m pip install -q --no-build-isolation --no-deps -e . > "$OUT/build.log" 2>&1 || { tail -40 "$OUT/build.log"; exit 1; }
 python3 -c "import pbf_cuda; print('backends', pbf_cuda.available_backends())"
 stage "gpu tests"
@@ -27,16 +28,16 @@ for step in "$@"; do
   stage "$step"
   case "$step" in
     table1) timeout 300 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$R" -q && cat "$R/data/table1.csv" ;;
-    scaling) timeout 300 python3 -m bench.studies.scaling --sizes 250000 1000000 4000000 16000000 --steps 20 --quiet \
+    scaling) timeout 300 python3 -m bench.cli pbf-scaling --sizes 250000,1000000,4000000,16000000 --steps 20 --quiet \
                --out "$R/data/pbf_scaling.csv" && cat "$R/data/pbf_scaling.csv" ;;
-    grid) timeout 240 python3 -m bench.grid_scaling --sizes 32 64 128 --steps 10 --devices cpu,gpu \
+    grid) timeout 240 python3 -m bench.cli grid-scaling --sizes 32,64,128 --steps 10 --devices cpu,gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
     adaptive_cost)  # level-0 spacings 45 m and 40 m: about 430k and 600k adaptive particles on average
-      timeout 300 python3 -m bench.studies.adaptive_cost --spacing 45 --steps 500 --quiet --out /tmp/ac45.csv &&
-      timeout 300 python3 -m bench.studies.adaptive_cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
+      timeout 300 python3 -m bench.cli adaptive-cost --spacing 45 --steps 500 --quiet --out /tmp/ac45.csv &&
+      timeout 300 python3 -m bench.cli adaptive-cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
       python3 -c "import pandas as pd, sys; pd.concat([pd.read_csv('/tmp/ac45.csv'), pd.read_csv('/tmp/ac40.csv')]).to_csv(sys.argv[1], index=False)" \
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
-    constant_gravity) timeout 400 python3 -m bench.studies.constant_gravity --gravity 0.1 0.3 1.0 --quiet \
+    constant_gravity) timeout 400 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;

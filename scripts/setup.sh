@@ -19,8 +19,27 @@ if [ "${#need_pkgs[@]}" -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
     || echo "setup: could not install rendering libraries; renders will be reported as unavailable"
 fi
 
+# CUDA architectures of this (editable, from-source) build: a machine with a GPU builds for that GPU
+# (native); one without (CI) compiles the CUDA backend for one architecture only, to check that it
+# builds without six times the compile time. Set CUDAARCHS to choose; `pip install .` or a wheel build
+# without it carries the portable default (every architecture since Volta, see CMakeLists.txt).
+if [ -z "${CUDAARCHS:-}" ] && command -v nvcc >/dev/null 2>&1; then
+  if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L 2>/dev/null | grep -q "^GPU"; then
+    export CUDAARCHS=native
+  else
+    export CUDAARCHS=90
+  fi
+fi
+
 python=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[${extras}]"
+# Exact versions from constraints.txt (the lock CI and the demo use); CLOUDPBF_CONSTRAINTS=none takes the
+# newest versions pyproject.toml's ranges allow, CLOUDPBF_CONSTRAINTS=FILE another lock.
+constraints="${CLOUDPBF_CONSTRAINTS:-constraints.txt}"
+if [ "$constraints" = "none" ]; then
+  .venv/bin/python -m pip install -q -e ".[${extras}]"
+else
+  .venv/bin/python -m pip install -q -c "$constraints" -e ".[${extras}]"
+fi
 .venv/bin/python -c "import pbf_cuda; print('setup: pbf_cuda backends available:', pbf_cuda.available_backends())"

@@ -12,8 +12,9 @@ from bench import grid_scaling  # noqa: E402
 def test_writes_then_appends_rows(tmp_path):
     out = tmp_path / "reports" / "grid_scaling.csv"
     args = ["--sizes", "6", "--steps", "2", "--warmup", "0", "--devices", "cpu", "--out", str(out)]
-    assert grid_scaling.main(args) == 0
-    assert grid_scaling.main(["--sizes", "8"] + args[2:] + ["--commit", "abc1234"]) == 0
+    assert grid_scaling.main(args) == 0                 # python -m bench.grid_scaling: the CLI's grid-scaling
+    from bench.cli import main
+    assert main(["grid-scaling", "--sizes", "8"] + args[2:] + ["--commit", "abc1234"]) == 0
     with open(out, newline="") as fh:
         rows = list(csv.reader(fh))
     assert tuple(rows[0]) == grid_scaling.COLUMNS
@@ -34,5 +35,8 @@ def test_commit_unknown_without_git(monkeypatch, tmp_path):
 def test_refuses_a_file_with_other_columns(tmp_path):
     out = tmp_path / "x.csv"
     out.write_text("a,b\n1,2\n")
-    with pytest.raises(SystemExit):
-        grid_scaling.main(["--sizes", "6", "--steps", "1", "--devices", "cpu", "--out", str(out)])
+    # through the CLI: a usage error (exit code 2) naming the file, nothing appended
+    assert grid_scaling.main(["--sizes", "6", "--steps", "1", "--devices", "cpu", "--out", str(out)]) == 2
+    assert out.read_text() == "a,b\n1,2\n"
+    with pytest.raises(ValueError, match="has columns"):
+        grid_scaling.run_grid_scaling([6], steps=1, devices="cpu", out=out)

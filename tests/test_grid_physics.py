@@ -1,4 +1,4 @@
-"""Grid baseline physics: conservation, rest state, phase transition, and SPEC.md's physical checks
+"""Grid baseline physics: conservation, rest state, phase transition, and the design's physical checks (docs/design.md)
 (lifting condensation level, internal gravity wave frequency) on the grid."""
 import math
 
@@ -113,7 +113,7 @@ def test_resting_stratified_atmosphere_stays_at_rest(dtype):
     assert st["total_cloud"] == 0.0
 
 
-# ---- SPEC.md: lifting condensation level ---------------------------------------------------
+# ---- docs/design.md checks: lifting condensation level-----------------------------------------------
 def test_uniform_vapor_cloud_layer_base_at_lcl():
     """Parcel scene with uniform vapor (atmosphere.vapor_profile = 'uniform'): neutral (theta = 300 K
     everywhere) and one q at every height, so the air that condenses first is the environment air itself,
@@ -168,7 +168,7 @@ def test_parcel_scene_rising_air_condenses_at_its_lcl():
     assert abs(z - lcl) / lcl < 0.10, (z, lcl, sim.step_count)
 
 
-# ---- SPEC.md: internal gravity wave ---------------------------------------------------------------
+# ---- docs/design.md checks: internal gravity wave-----------------------------------------------------------
 def test_stratified_wave_frequency():
     """The stratified scene's mode psi = a sin(kx x) sin(ky y) oscillates at omega = N kx/|k|,
     N^2 = (g/T)(Gamma_d - Gamma_env) (g = atmosphere.buoyancy, T the mean environment temperature).

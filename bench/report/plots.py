@@ -1,7 +1,7 @@
 """Matplotlib figures of the report, returned as ``data:image/png;base64`` URIs.
 
 Each function takes the study's DataFrames (columns as in the data layout of
-SPEC.md / the report's README section) and returns one embedded PNG.  Times are
+docs/harness.md, "Study outputs") and returns one embedded PNG.  Times are
 ms per step (Table 1, scaling) or s (wall time, simulated time); heights are m.
 """
 from __future__ import annotations

@@ -8,7 +8,7 @@ warm-up: ``splitting_ms`` and ``merging_ms`` are the paper's phases (``merge_pas
 ``compaction_ms`` are sub-timers inside merging), and ``pbf_ms`` is the same run's constraint solve,
 the baseline each adaptive phase is compared with (``split_vs_pbf``, ``merge_vs_pbf``).
 
-    python -m bench.studies.adaptive_cost --spacing 45 --out reports/gpu/data/adaptive_cost.csv
+    cloudpbf adaptive-cost --spacing 45 --out reports/gpu/data/adaptive_cost.csv
 
 writes scene,spacing_m,mean_particles,max_particles,splitting_ms,merging_ms,merge_passes_ms,
 compaction_ms,pbf_ms,total_ms,split_vs_pbf,merge_vs_pbf,split_target_ms,merge_target_ms,meets_targets
@@ -16,7 +16,6 @@ compaction_ms,pbf_ms,total_ms,split_vs_pbf,merge_vs_pbf,split_target_ms,merge_ta
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -76,25 +75,9 @@ COLUMNS = ("scene", "spacing_m", "mean_particles", "max_particles", "splitting_m
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.studies.adaptive_cost",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--spacing", type=float, default=45.0, help="level-0 lattice spacing, m (default 45)")
-    parser.add_argument("--steps", type=int, default=500, help="steps per run (default 500)")
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
-    parser.add_argument("--backend", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument("--out", type=Path, default=Path("reports/gpu/data/adaptive_cost.csv"))
-    parser.add_argument("--runs-root", type=Path, default=None)
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    if not 5.0 <= args.spacing <= 1000.0:
-        parser.error(f"--spacing {args.spacing}: allowed range [5, 1000] m")
-    if not WARMUP_STEPS < args.steps <= 100_000:
-        parser.error(f"--steps {args.steps}: allowed range [{WARMUP_STEPS + 1}, 100000]")
-    frame = adaptive_cost(args.scenes, args.spacing, args.steps, args.backend, args.runs_root, args.quiet)
-    runs.write_csv(frame, args.out)
-    print(frame[list(COLUMNS)].to_string(index=False))
-    print(f"targets: splitting <= {SPLIT_TARGET_MS} ms, merging <= {MERGE_TARGET_MS} ms per step; wrote {args.out}")
-    return 0
+    """``python -m bench.studies.adaptive_cost ARGS`` is ``cloudpbf adaptive-cost ARGS``."""
+    from bench.cli import main as cli_main
+    return cli_main(["adaptive-cost", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

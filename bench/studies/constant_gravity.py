@@ -10,13 +10,12 @@ whether it stayed stable, the mean density error and largest speed of the last s
 cover (fraction of columns with cloud, bench.statistics) over time: when it first appears, its
 largest value, and whether it fell back to zero afterwards and came back (``vanished_and_returned``).
 
-    python -m bench.studies.constant_gravity --gravity 0.1 0.3 1.0 --out reports/gpu/data/constant_gravity.csv
+    cloudpbf constant-gravity --gravity 0.1,0.3,1.0 --out reports/gpu/data/constant_gravity.csv
 
 Runs go through the run cache.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -75,31 +74,9 @@ def constant_gravity(gravities=(0.1, 0.3, 1.0), particles: int | None = None, st
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.studies.constant_gravity",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--gravity", type=float, nargs="+", default=[0.1, 0.3, 1.0],
-                        help="constant gravities g_c to add, m/s^2 (default 0.1 0.3 1.0)")
-    parser.add_argument("--particles", type=int, default=None, help="resample the scenes to about this many")
-    parser.add_argument("--steps", type=int, default=None, help="steps (default: the scenes' 500)")
-    parser.add_argument("--backend", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument("--out", type=Path, default=Path("reports/gpu/data/constant_gravity.csv"))
-    parser.add_argument("--runs-root", type=Path, default=None)
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    bad = [g for g in args.gravity if not 0.0 < g <= 100.0]
-    if bad:
-        parser.error(f"--gravity {bad[0]}: allowed range (0, 100] m/s^2")
-    if args.particles is not None and not 100 <= args.particles <= 1_000_000_000:
-        parser.error(f"--particles {args.particles}: allowed range [100, 1000000000]")
-    if args.steps is not None and not 1 <= args.steps <= 10_000_000:
-        parser.error(f"--steps {args.steps}: allowed range [1, 10000000]")
-    frame = constant_gravity(args.gravity, args.particles, args.steps, backend=args.backend,
-                             runs_root=args.runs_root, quiet=args.quiet)
-    runs.write_csv(frame, args.out)
-    with pd.option_context("display.width", 200, "display.max_columns", 20):
-        print(frame[[c for c in COLUMNS if c in frame.columns]].to_string(index=False))
-    print(f"wrote {args.out}")
-    return 0
+    """``python -m bench.studies.constant_gravity ARGS`` is ``cloudpbf constant-gravity ARGS``."""
+    from bench.cli import main as cli_main
+    return cli_main(["constant-gravity", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

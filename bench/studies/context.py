@@ -40,13 +40,24 @@ def _where(exc: BaseException) -> str:
     return f" (at {f.filename}:{f.lineno} in {f.name})"
 
 
+def xla_single_thread_flags(existing: str | None = None) -> str:
+    """XLA_FLAGS for a single-threaded jax worker: the existing flags plus ``--xla_cpu_multi_thread_eigen=false``.
+
+    XLA reads only ``--``-prefixed flags from XLA_FLAGS.  The often-quoted ``intra_op_parallelism_threads=1``
+    is no XLA flag: without ``--`` XLA skips it silently, with ``--`` it aborts the process ("Unknown flag in
+    XLA_FLAGS"), so it is not set (and dropped from `existing`, where it would do nothing).  The worker's
+    OpenMP threads are set by OMP_NUM_THREADS."""
+    flags = [f for f in (existing or "").split() if f.startswith("--")]
+    if not any(f.startswith("--xla_cpu_multi_thread_eigen") for f in flags):
+        flags.append("--xla_cpu_multi_thread_eigen=false")
+    return " ".join(flags)
+
+
 def _worker_env(threads: int) -> dict:
     env = {"OMP_NUM_THREADS": str(threads),
            "PYTHONPATH": os.pathsep.join([str(runs.REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     if threads == 1:
-        env["XLA_FLAGS"] = " ".join(filter(None, [os.environ.get("XLA_FLAGS"),
-                                                  "--xla_cpu_multi_thread_eigen=false",
-                                                  "intra_op_parallelism_threads=1"]))
+        env["XLA_FLAGS"] = xla_single_thread_flags(os.environ.get("XLA_FLAGS"))
     if os.environ.get("CLOUDPBF_RUNS"):
         env["CLOUDPBF_RUNS"] = os.environ["CLOUDPBF_RUNS"]
     return env
@@ -116,7 +127,7 @@ class StudyContext:
 
     def run_parallel(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:
         """Run the specs the cache lacks on the dask cluster; results in the order of `specs`."""
-        from tqdm.auto import tqdm
+        from pbf_cuda.progress import progress_bar as tqdm
         keys = [spec.key() for spec in specs]
         unique = dict(zip(keys, specs))
         done = {}

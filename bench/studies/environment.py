@@ -8,12 +8,11 @@ import os
 import platform
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parent.parent.parent
 PACKAGES = ("numpy", "pandas", "pyarrow", "scipy", "jax", "jaxlib", "jax-cfd", "dask", "distributed",
-            "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm")
+            "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm", "xarray", "h5netcdf", "zarr")
 SCALES = ("cpu-smoke", "cpu", "gpu")
 
 
@@ -85,11 +84,30 @@ def versions() -> dict[str, str | None]:
             out[name] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
             out[name] = None
-    try:
-        out["cloudpbf"] = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["version"]
-    except (OSError, KeyError, tomllib.TOMLDecodeError):
-        out["cloudpbf"] = None
+    from pbf_cuda._version import version
+    out["cloudpbf"] = version()          # package metadata (works from a wheel, not only a checkout)
     return out
+
+
+def lock_check(path: str | Path | None = None) -> dict | None:
+    """Installed versions against the lock file (constraints.txt of the checkout): ``{"file", "matches",
+    "differs": {package: {"locked", "installed"}}}``; None where there is no lock file (a wheel install)."""
+    path = Path(path) if path is not None else REPO_ROOT / "constraints.txt"
+    if not path.is_file():
+        return None
+    differs = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if "==" not in line:
+            continue
+        name, locked = (part.strip() for part in line.split("==", 1))
+        try:
+            installed = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            installed = None
+        if installed != locked:
+            differs[name] = {"locked": locked, "installed": installed}
+    return {"file": path.name, "matches": not differs, "differs": differs}
 
 
 def environment(scale: str, backend: str) -> dict:
@@ -99,7 +117,7 @@ def environment(scale: str, backend: str) -> dict:
     return {"device": device_description(backend), "backend": backend, "commit": commit(),
             "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "python": sys.version.split()[0], "platform": platform.platform(), "cpu": cpu_name(),
-            "gpus": list(gpu_names()), "versions": versions(), "scale": scale}
+            "gpus": list(gpu_names()), "versions": versions(), "lock": lock_check(), "scale": scale}
 
 
 def write_environment(out_dir: str | Path, scale: str, backend: str) -> Path:

@@ -7,15 +7,14 @@ update) and ``neighbors_ms`` / ``solver_ms`` its sub-timers, each a mean over th
 Grid: the same scene on n^3 cells, per dtype, measured by bench.grid_scaling (``step_ms`` is the
 grid's own mean step time, compiled before the clock starts).
 
-    python -m bench.studies.scaling --sizes 250000 1000000 4000000 --out reports/gpu/pbf_scaling.csv
+    cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/pbf_scaling.csv
 
 writes particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit (then pbf_ms, backend,
 scene, steps, stable, reason, run_dir) to --out.  Particle runs go through the run cache, so a rerun
-costs nothing.  For the grid alone: ``python -m bench.grid_scaling``.
+costs nothing.  For the grid alone: ``cloudpbf grid-scaling``.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -88,27 +87,9 @@ def run_scaling(ctx) -> dict[str, pd.DataFrame]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.studies.scaling", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[250_000, 1_000_000, 4_000_000],
-                        help="particle counts (default: 250000 1000000 4000000)")
-    parser.add_argument("--out", type=Path, default=Path("reports/gpu/pbf_scaling.csv"))
-    parser.add_argument("--backend", choices=("auto", "cpu", "cuda"), default="auto")
-    parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--steps", type=int, default=20, help="timed steps per size (after 2 warm-up steps)")
-    parser.add_argument("--scene", default=SCENE)
-    parser.add_argument("--runs-root", type=Path, default=None)
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    bad = [v for v in args.sizes if v < 100]
-    if bad:
-        parser.error(f"--sizes {bad[0]}: particle counts must be >= 100")
-    if not 1 <= args.steps <= 10_000:
-        parser.error(f"--steps {args.steps}: allowed range [1, 10000]")
-    frame = pbf_scaling(args.sizes, args.backend, args.runs_root, args.scene, args.iterations, args.steps, args.quiet)
-    runs.write_csv(frame, args.out)
-    print(frame[list(PBF_COLUMNS)].to_string(index=False))
-    print(f"wrote {args.out}")
-    return 0
+    """``python -m bench.studies.scaling ARGS`` is ``cloudpbf pbf-scaling ARGS``."""
+    from bench.cli import main as cli_main
+    return cli_main(["pbf-scaling", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -15,6 +15,13 @@ int cuda_device_count() {
     return n;
 }
 
+// Compute capability of device 0 as major * 10 + minor (90 for an H100), or -1 without a device.
+int cuda_device_capability() {
+    cudaDeviceProp prop;
+    if (cuda_device_count() == 0 || cudaGetDeviceProperties(&prop, 0) != cudaSuccess) return -1;
+    return prop.major * 10 + prop.minor;
+}
+
 std::string cuda_device_name() {
     cudaDeviceProp prop;
     if (cuda_device_count() == 0 || cudaGetDeviceProperties(&prop, 0) != cudaSuccess) return "";

@@ -22,6 +22,15 @@
 namespace nb = nanobind;
 using namespace nb::literals;
 
+#ifdef PBF_WITH_CUDA
+namespace pbf {
+int cuda_device_capability();  // backend_cuda.cu
+}
+#endif
+#ifndef PBF_CUDA_ARCHITECTURES
+#define PBF_CUDA_ARCHITECTURES ""
+#endif
+
 namespace {
 
 using FloatArray = nb::ndarray<const float, nb::c_contig, nb::device::cpu>;
@@ -288,6 +297,16 @@ NB_MODULE(_core, m) {
 
     m.def("cuda_built", &cuda_built);
     m.def("cuda_device_count", &device_count);
+    // The CUDA architectures compiled in (CMake syntax, comma-separated: "75-real,...,90-real,90-virtual").
+    m.def("cuda_architectures", []() { return std::string(PBF_CUDA_ARCHITECTURES); });
+    // Device 0's compute capability as major * 10 + minor, -1 without a device or a CUDA build.
+    m.def("cuda_device_capability", []() {
+#ifdef PBF_WITH_CUDA
+        return pbf::cuda_device_capability();
+#else
+        return -1;
+#endif
+    });
     m.def("cuda_device_name", []() {
 #ifdef PBF_WITH_CUDA
         return pbf::cuda_device_name();
