@@ -175,6 +175,10 @@ double reference_gradient_norm2(float h, float d, float m, float rho0) {
 
 }  // namespace
 
+#ifndef PBF_SOURCE_HASH
+#define PBF_SOURCE_HASH "unknown"
+#endif
+
 NB_MODULE(_core, m) {
     m.doc() = "cloudpbf particle solver core (one C++ source; CUDA and OpenMP backends)";
 
@@ -241,6 +245,7 @@ NB_MODULE(_core, m) {
         .def("reset_timings", [](PySolver& s) { s.impl_->reset_timings(); })
         .def("stats", &PySolver::stats);
 
+    m.def("source_hash", []() { return std::string(PBF_SOURCE_HASH); });  // csrc hash (CMakeLists.txt)
     m.def("cuda_built", &cuda_built);
     m.def("cuda_device_count", &device_count);
     m.def("cuda_device_name", []() {
