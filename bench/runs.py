@@ -4,8 +4,8 @@ A :class:`RunSpec` says what to run (solver, scene, backend, steps, seed, option
 sha256 of the scene's parameters (its description aside), the solver, the resolved backend, the
 step count, the seed, the run options and the *code version*: a hash of the source files the result
 depends on (see :data:`CODE_SOURCES`), so editing the solver, the grid baseline or the statistics
-invalidates earlier runs of that solver.  The compiled module itself is not hashed: rebuild it after
-editing ``pbf_cuda/csrc``.
+invalidates earlier runs of that solver.  The compiled module carries the hash of the csrc sources it
+was built from and is refused when they differ (pbf_cuda.buildinfo), so a stale build never runs.
 
 ``execute(spec)`` returns the stored result when ``result.json`` exists (no work at all), resumes
 from ``checkpoint.npz`` when an earlier attempt was interrupted, and otherwise runs from step 0.
@@ -20,12 +20,19 @@ Layout of ``ROOT/<solver>-<scene>-<key16>/``::
     snapshots/step_NNNNNN.npz   a few full states (particles) or fields (grid), the final one included
     checkpoint.npz     the latest good checkpoint, with progress.json beside it
     partial/           rows gathered so far by an unfinished run (discarded up to its checkpoint on resume)
-    result.json        written last, atomically: marks the run complete (stable or not)
+    result.json        written last, atomically: marks the run complete (stable or not); holds the
+                       manifest (bytes, sha256) of the other files and its own checksum
+
+A stored result is served only when it passes :func:`verify_run`; a run that fails it (or an unfinished
+attempt whose checkpoint, progress.json or partial/ is unusable or belongs to another run) is moved to
+``ROOT/quarantine/`` (kept, logged) and computed again.  A run that cannot start (no such backend, too
+large for the memory) is refused before its directory is made.
 
 An unstable run (NaN/Inf, velocity or density-error bound, particles escaping through a wall) is
 complete too: ``result.json`` holds ``stable: false`` with the reason, the step and the particle
 ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
-file is written to a temporary name and moved into place with ``os.replace``.
+file is written through pbf_cuda.files.atomic_path: a temporary name, fsync, ``os.replace``, fsync
+of the folder.
 
 The default root is ``runs/`` in the repository, or ``$CLOUDPBF_RUNS``.
 """
