@@ -54,6 +54,14 @@ MAX_DESCRIPTION_CHARS = 10_000   # scene.description
 SHORT_VALUE_CHARS = 60           # values are shortened to this in error messages
 
 
+def short_text(text: str, limit: int = SHORT_VALUE_CHARS) -> str:
+    """`text` cut to about `limit` characters, without quotes (for names and paths in messages)."""
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit - 20]}...{text[-8:]} ({len(text)} chars)"
+
+
 def short(value: Any, limit: int = SHORT_VALUE_CHARS) -> str:
     """repr(value) cut to `limit` characters (error messages never echo a huge value whole)."""
     try:
@@ -327,7 +335,7 @@ def _build_section(name: str, cls, data: dict, source: str):
     known = {f.name: f for f in fields(cls)}
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise SceneError(f"{source}: unknown field {name}.{short(unknown[0])[1:-1]}; known fields: {', '.join(known)}")
+        raise SceneError(f"{source}: unknown field {name}.{short_text(unknown[0])}; known fields: {', '.join(known)}")
     obj = cls()
     for key, value in data.items():
         f = known[key]
@@ -385,14 +393,14 @@ def scene_from_dict(data: dict, source: str = "scene") -> Scene:
     allowed = {"scene", *SECTIONS}
     unknown = sorted(map(str, set(data) - allowed))
     if unknown:
-        raise SceneError(f"{source}: unknown section [{short(unknown[0])[1:-1]}]; "
+        raise SceneError(f"{source}: unknown section [{short_text(unknown[0])}]; "
                          f"known sections: {', '.join(sorted(allowed))}")
     head = data.get("scene", {})
     if not isinstance(head, dict):
         raise SceneError(f"{source}: [scene] = {short(head)} must be a table (name, description, extends)")
     extra = sorted(map(str, set(head) - {"name", "description", "extends"}))
     if extra:
-        raise SceneError(f"{source}: unknown field scene.{short(extra[0])[1:-1]}; known fields: name, description, extends")
+        raise SceneError(f"{source}: unknown field scene.{short_text(extra[0])}; known fields: name, description, extends")
     name = head.get("name", _default_name(source))
     if not isinstance(name, str) or not 1 <= len(name) <= MAX_NAME_CHARS:
         raise SceneError(f"{source}: scene.name = {short(name)}: expected a text of 1 to {MAX_NAME_CHARS} characters")
@@ -456,7 +464,7 @@ def _read_scene_file(path: Path, what: str) -> dict:
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{path}: not valid TOML: {short(str(exc), 200)[1:-1]}") from None
+        raise SceneError(f"{path}: not valid TOML: {short_text(str(exc), 200)}") from None
     except (RecursionError, ValueError, OverflowError) as exc:
         raise SceneError(f"{path}: not a usable TOML file: {type(exc).__name__}: {short(str(exc))}") from None
 
@@ -468,25 +476,26 @@ def _shipped(name: str) -> Path | None:
     return None
 
 
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except (OSError, ValueError):       # a name too long for the filesystem, a NUL byte
+        return False
+
+
 def _resolve_path(name_or_path: str | Path) -> Path:
     """A shipped scene's name or a path to a scene file (as given by the caller)."""
-    if isinstance(name_or_path, str):
-        if not name_or_path or len(name_or_path) > 4096 or "\0" in name_or_path:
-            raise SceneError(f"scene {short(name_or_path)}: expected a shipped scene's name or a path to a .toml "
-                             f"file; shipped scenes: {', '.join(list_scenes())}")
-        shipped = _shipped(name_or_path)
-        if shipped is not None and not Path(name_or_path).exists():
-            return shipped
+    text = str(name_or_path)
+    if not text or len(text) > 4096 or "\0" in text:
+        raise SceneError(f"scene {short(text)}: expected a shipped scene's name or a path to a .toml "
+                         f"file; shipped scenes: {', '.join(list_scenes())}")
     path = Path(name_or_path)
-    if not path.suffix and not path.exists():
-        raise SceneError(f"scene '{short(str(name_or_path))[1:-1]}' not found; shipped scenes: {', '.join(list_scenes())}")
-    try:
-        exists = path.exists()
-    except (OSError, ValueError):
-        exists = False
-    if not exists:
-        raise SceneError(f"scene '{short(str(name_or_path))[1:-1]}' not found; shipped scenes: {', '.join(list_scenes())}")
-    return path
+    if _exists(path):
+        return path
+    shipped = _shipped(text) if not path.suffix else None
+    if shipped is not None:
+        return shipped
+    raise SceneError(f"scene '{short_text(text)}' not found; shipped scenes: {', '.join(list_scenes())}")
 
 
 def _resolve_extends(parent: Any, including: Path) -> Path:
@@ -558,4 +567,4 @@ def load_scene(name_or_path: str | Path, **overrides) -> Scene:
         raise
     except (ValueError, TypeError, AttributeError, OverflowError, RecursionError, OSError, MemoryError) as exc:
         # A last line of defence: whatever slipped through the checks above still names the file.
-        raise SceneError(f"{path}: invalid scene ({type(exc).__name__}: {short(str(exc))[1:-1]})") from None
+        raise SceneError(f"{path}: invalid scene ({type(exc).__name__}: {short_text(str(exc))})") from None
