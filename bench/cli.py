@@ -114,10 +114,13 @@ def _parse_sizes(text: str | None, name: str, lo: int) -> list[int] | None:
 
 
 def _check_folder(path: Optional[Path], option: str) -> None:
-    """A folder option: an existing folder or a path whose first existing ancestor is a writable folder."""
+    """A folder option: an existing folder or a path whose first existing ancestor is a writable folder.
+    Without --runs-root, $CLOUDPBF_RUNS is checked in its place."""
+    import os
+    if path is None and option == "--runs-root" and os.environ.get("CLOUDPBF_RUNS"):
+        path, option = Path(os.environ["CLOUDPBF_RUNS"]), "$CLOUDPBF_RUNS"
     if path is None:
         return
-    import os
     text = str(path)
     shown = text if len(text) <= 80 else text[:77] + "..."
     if "\0" in text or len(text) > 4096:
