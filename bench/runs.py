@@ -656,15 +656,25 @@ def verify_run(directory: str | Path, key: str | None = None) -> list[str]:
     problems = []
     for rel, entry in info["manifest"].items():
         p = directory / rel
+        if not isinstance(entry, dict) or ".." in Path(rel).parts or Path(rel).is_absolute():
+            problems.append(f"manifest entry {rel[:80]!r} is malformed")
+            continue
         try:
             size = p.stat().st_size
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             problems.append(f"{rel} is missing")
+            continue
+        except OSError as exc:
+            problems.append(f"{rel} is unreadable ({exc.strerror or exc})")
             continue
         if size != entry.get("bytes"):
             problems.append(f"{rel} has {size} bytes, the manifest says {entry.get('bytes')}")
-        elif sha256_file(p) != entry.get("sha256"):
-            problems.append(f"{rel} does not match its sha256")
+            continue
+        try:
+            if sha256_file(p) != entry.get("sha256"):
+                problems.append(f"{rel} does not match its sha256")
+        except OSError as exc:
+            problems.append(f"{rel} is unreadable ({exc.strerror or exc})")
     if not problems:
         _VERIFIED[memo] = True
     return problems

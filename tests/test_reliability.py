@@ -400,6 +400,20 @@ def test_damaged_finished_run_is_quarantined_and_recomputed(reference, toy_solve
     assert third.cached and toy_solver.steps_taken == spec.total_steps
 
 
+def test_tampered_manifest_is_refused_without_reading_outside_the_run(toy_solver, tmp_path):
+    spec = toy_spec()
+    first = runs.execute(spec, tmp_path, quiet=True)
+    info = json.loads((first.path / "result.json").read_text())
+    info["manifest"]["../../outside.txt"] = {"bytes": 1, "sha256": "0" * 64}
+    info["manifest"]["stats.parquet"] = "not an entry"
+    info["checksum"] = runs._info_checksum(info)                   # a consistent-looking forgery
+    (first.path / "result.json").write_text(json.dumps(info))
+    problems = runs.verify_run(first.path, spec.key())
+    assert sum("malformed" in p for p in problems) == 2, problems
+    again = runs.execute(spec, tmp_path, quiet=True)
+    assert not again.cached and runs.verify_run(again.path, spec.key()) == []
+
+
 class Crash(Exception):
     pass
 
