@@ -8,6 +8,7 @@ under two minutes on 2 cores.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -89,7 +90,7 @@ leaf = st.one_of(
     st.booleans(), st.text(max_size=20), st.just("x" * 5000), st.just(10**400),
     st.lists(st.floats(-1e7, 1e7), max_size=4), st.lists(st.sampled_from(["wall", "periodic", "open"]), max_size=4),
     st.just(["wall", "wall", "wall"]), st.just({"a": 1}), st.just([]),
-)
+).map(copy.deepcopy)       # a fresh object per draw: a drawn table may be mutated further
 EXTENDS = ["growing", "dam_break", "", ".", "..", "/dev/zero", "/proc/self/environ", "../../../etc/passwd",
            "self.toml", "other.toml", "./other.toml", "sub/../self.toml", "missing.toml", "x" * 5000, "a\nb"]
 
