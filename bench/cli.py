@@ -23,6 +23,7 @@ See docs/harness.md.
 """
 from __future__ import annotations
 
+import contextlib
 import sys
 import tomllib
 from enum import Enum
@@ -90,7 +91,13 @@ def _load_scene(name: str, overrides: dict | None = None):
     """A scene by name or path; unknown names list the shipped scenes (exit code 2)."""
     from pbf_cuda.scene import SceneError, list_scenes, load_scene
     path = Path(name)
-    if name not in list_scenes() and not (path.suffix == ".toml" and path.exists()):
+    try:
+        is_file = path.suffix == ".toml" and path.exists()
+    except (OSError, ValueError):                 # a name too long for the filesystem, a NUL byte
+        is_file = False
+    if name not in list_scenes() and not is_file:
+        if len(name) > 80:
+            name = name[:77] + "..."
         raise typer.BadParameter(f"unknown scene '{name}'; shipped scenes: {', '.join(list_scenes())} "
                                  f"(or a path to a .toml file)", param_hint="'SCENE'")
     try:
@@ -128,14 +135,87 @@ def _parse_sizes(text: str | None, name: str, lo: int) -> list[int] | None:
     return sizes
 
 
+def _check_folder(path: Optional[Path], option: str) -> None:
+    """A folder option: an existing folder or a path whose first existing ancestor is a writable folder.
+    Without --runs-root, $CLOUDPBF_RUNS is checked in its place."""
+    import os
+    if path is None and option == "--runs-root" and os.environ.get("CLOUDPBF_RUNS"):
+        path, option = Path(os.environ["CLOUDPBF_RUNS"]), "$CLOUDPBF_RUNS"
+    if path is None:
+        return
+    text = str(path)
+    shown = text if len(text) <= 80 else text[:77] + "..."
+    if "\0" in text or len(text) > 4096:
+        raise typer.BadParameter(f"'{shown}': not a usable folder path", param_hint=f"'{option}'")
+    probe = Path(path).absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if probe == Path(path).absolute() and not probe.is_dir():
+        raise typer.BadParameter(f"'{shown}' is a file, expected a folder", param_hint=f"'{option}'")
+    if not probe.is_dir():
+        raise typer.BadParameter(f"'{shown}': {probe} is a file, so the folder cannot be made",
+                                 param_hint=f"'{option}'")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise typer.BadParameter(f"'{shown}': {probe} is not writable", param_hint=f"'{option}'")
+
+
+def _check_backend(backend: Backend, solver: str = "particles") -> None:
+    """--backend cuda where no CUDA device (or no CUDA build) exists: exit 2 naming the option."""
+    if backend is not Backend.cuda:
+        return
+    if solver == "grid":
+        try:
+            import jax
+            ok = bool(jax.devices("gpu"))
+        except Exception:  # noqa: BLE001  (jax raises RuntimeError when no GPU backend exists)
+            ok = False
+        why = "jax sees no GPU"
+    else:
+        from pbf_cuda.simulation import _core, available_backends
+        ok = "cuda" in available_backends()
+        why = "pbf_cuda was built without CUDA" if not _core().cuda_built() else "no CUDA device is visible"
+    if not ok:
+        raise typer.BadParameter(f"'cuda' is not available here ({why}); use auto or cpu", param_hint="'--backend'")
+
+
+@contextlib.contextmanager
+def _refusals(particles: Optional[int] = None):
+    """What a command cannot do as asked ends in one line and exit code 2: scene and memory checks,
+    an unusable scheduler, a stale compiled solver."""
+    from bench.studies.context import SchedulerError
+    from pbf_cuda.buildinfo import StaleBuildError
+    from pbf_cuda.scene import SceneError
+    try:
+        yield
+    except SceneError as exc:
+        prefix = f"--particles {particles}: " if particles is not None else ""
+        raise click.UsageError(prefix + " ".join(str(exc).split())) from None
+    except SchedulerError as exc:
+        raise typer.BadParameter(str(exc), param_hint="'--scheduler'") from None
+    except StaleBuildError as exc:
+        raise click.UsageError(str(exc)) from None
+
+
 def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Backend, workers: Optional[int],
              scheduler: Optional[str], quiet: bool):
     from bench import runs
-    from bench.studies.context import StudyContext
+    from bench.studies.context import SchedulerError, StudyContext, check_scheduler_address
     from bench.studies.scales import resolve_scale
     from bench.studies.environment import write_environment
-    ctx = StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
-                       backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+    _check_folder(out, "--out")
+    _check_folder(runs_root, "--runs-root")
+    with _refusals():
+        _check_backend(backend)
+    if scheduler is not None:
+        try:
+            check_scheduler_address(scheduler)
+        except SchedulerError as exc:
+            raise typer.BadParameter(str(exc), param_hint="'--scheduler'") from None
+    with _refusals():
+        ctx = StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
+                           backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+        if scheduler is not None and scheduler != "inline":
+            ctx.client()                  # fail now, in one line, when no scheduler answers
     write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran
     return ctx
 
@@ -208,6 +288,7 @@ def run(
 
     Exit code 0 when the run is stable, 1 when it went unstable (the reason, step and particles are printed)."""
     from bench import runs
+    _check_folder(runs_root, "--runs-root")
     scene_obj = _load_scene(scene, _parse_overrides(set_))
     if particles is not None:
         from pbf_cuda.scene import SceneError
@@ -218,13 +299,16 @@ def run(
     if solver is Solver.grid and not scene_obj.thermodynamics:
         raise typer.BadParameter(f"scene '{scene}' has no [atmosphere]; the grid baseline runs cloud scenes only",
                                  param_hint="'SCENE'")
+    with _refusals():
+        _check_backend(backend, solver.value)
     try:
         spec = runs.RunSpec(solver.value, scene_obj, backend=backend.value, steps=steps, seed=seed,
                             snapshot_every=snapshot_every, cells_per_spacing=cells_per_spacing,
                             record_steps=(not scene_obj.thermodynamics) if record_steps is None else record_steps)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
-    result = runs.execute(spec, runs_root, quiet=quiet)
+    with _refusals(particles):
+        result = runs.execute(spec, runs_root, quiet=quiet)
     timings = result.timings()
     typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
     typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {seed}, backend {result.backend}, "
@@ -245,7 +329,8 @@ def table1(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scal
     """Table 1: per-phase ms of the four examples beside the paper's (OUT/data/table1.csv)."""
     from bench.studies.table1 import run_table1
     with _context(out, runs_root, scale, backend, None, None, quiet) as ctx:
-        frame = run_table1(ctx)
+        with _refusals():
+            frame = run_table1(ctx)
     shown = ["example", "mode", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
              "merging_ms", "total_ms", "paper_max_particles", "paper_total_ms", "speedup_vs_paper", "stable"]
     typer.echo(frame[shown].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
@@ -267,7 +352,8 @@ def compare(
     _load_scene(scene)
     with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
         try:
-            frames = run_compare(ctx, scene, seeds)
+            with _refusals():
+                frames = run_compare(ctx, scene, seeds)
         except ValueError as exc:
             raise click.UsageError(str(exc)) from None
     typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
@@ -282,7 +368,8 @@ def sweep(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scale
     import json
     from bench.studies.sweep import run_sweep
     with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
-        frame = run_sweep(ctx)
+        with _refusals():
+            frame = run_sweep(ctx)
     typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
                .to_string(index=False))
     typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
@@ -297,7 +384,8 @@ def stress(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scal
     import json
     from bench.studies.stress import run_stress
     with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
-        frame = run_stress(ctx)
+        with _refusals():
+            frame = run_stress(ctx)
     typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
     summary = json.loads((ctx.data / "stress_summary.json").read_text())
     typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s")
@@ -320,7 +408,8 @@ def scaling(
         if particle_sizes or cell_sizes:
             ctx.scale = dataclasses.replace(ctx.scale, scaling_particles=tuple(particle_sizes or ctx.scale.scaling_particles),
                                             scaling_grid_cells=tuple(cell_sizes or ctx.scale.scaling_grid_cells))
-        frames = run_scaling(ctx)
+        with _refusals():
+            frames = run_scaling(ctx)
     typer.echo(frames["pbf_scaling"][list(PBF_COLUMNS)].to_string(index=False))
     typer.echo(frames["grid_scaling"][list(GRID_COLUMNS)].to_string(index=False))
     typer.echo(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
@@ -353,7 +442,8 @@ def demo(
     if bad:
         raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(STUDIES)}", param_hint="'--only'")
     with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
-        index, status = run_demo(ctx, only=chosen)
+        with _refusals():
+            index, status = run_demo(ctx, only=chosen)
     failed = [name for name, st in status.items() if not st["ok"]]
     for name, st in status.items():
         typer.echo(f"  {name:8s} {'ok' if st['ok'] else 'FAILED: ' + st['error'].splitlines()[0]}"

@@ -4,8 +4,8 @@ A :class:`RunSpec` says what to run (solver, scene, backend, steps, seed, option
 sha256 of the scene's parameters (its description aside), the solver, the resolved backend, the
 step count, the seed, the run options and the *code version*: a hash of the source files the result
 depends on (see :data:`CODE_SOURCES`), so editing the solver, the grid baseline or the statistics
-invalidates earlier runs of that solver.  The compiled module itself is not hashed: rebuild it after
-editing ``pbf_cuda/csrc``.
+invalidates earlier runs of that solver.  The compiled module carries the hash of the csrc sources it
+was built from and is refused when they differ (pbf_cuda.buildinfo), so a stale build never runs.
 
 ``execute(spec)`` returns the stored result when ``result.json`` exists (no work at all), resumes
 from ``checkpoint.npz`` when an earlier attempt was interrupted, and otherwise runs from step 0.
@@ -20,12 +20,19 @@ Layout of ``ROOT/<solver>-<scene>-<key16>/``::
     snapshots/step_NNNNNN.npz   a few full states (particles) or fields (grid), the final one included
     checkpoint.npz     the latest good checkpoint, with progress.json beside it
     partial/           rows gathered so far by an unfinished run (discarded up to its checkpoint on resume)
-    result.json        written last, atomically: marks the run complete (stable or not)
+    result.json        written last, atomically: marks the run complete (stable or not); holds the
+                       manifest (bytes, sha256) of the other files and its own checksum
+
+A stored result is served only when it passes :func:`verify_run`; a run that fails it (or an unfinished
+attempt whose checkpoint, progress.json or partial/ is unusable or belongs to another run) is moved to
+``ROOT/quarantine/`` (kept, logged) and computed again.  A run that cannot start (no such backend, too
+large for the memory) is refused before its directory is made.
 
 An unstable run (NaN/Inf, velocity or density-error bound, particles escaping through a wall) is
 complete too: ``result.json`` holds ``stable: false`` with the reason, the step and the particle
 ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
-file is written to a temporary name and moved into place with ``os.replace``.
+file is written through pbf_cuda.files.atomic_path: a temporary name, fsync, ``os.replace``, fsync
+of the folder.
 
 The default root is ``$CLOUDPBF_RUNS``, else ``runs/`` in a source checkout, else the user cache folder
 (:func:`default_root`).
@@ -38,11 +45,12 @@ import datetime as _dt
 import functools
 import hashlib
 import json
+import logging
 import math
 import os
 import re
+import shutil
 import time
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -54,11 +62,13 @@ from pbf_cuda.scene import Scene
 __all__ = [
     "RunSpec", "RunResult", "RunInstability", "execute", "execute_summary", "default_root", "code_version",
     "atomic_path", "atomic_write_text", "atomic_write_json", "write_csv", "write_parquet", "ADAPTERS",
-    "REPO_ROOT", "SOLVERS",
+    "REPO_ROOT", "SOLVERS", "verify_run", "cached_result", "QUARANTINE",
 ]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-RUN_FORMAT = 1          # bump when the run directory layout or the loop's semantics change
+QUARANTINE = "quarantine"    # ROOT/quarantine/: run files that failed verification, kept for inspection
+log = logging.getLogger("bench.runs")
+RUN_FORMAT = 2          # bump when the run directory layout or the loop's semantics change
 SOLVERS = ("particles", "grid")
 MAX_STEPS = 10**7
 SOURCE_SUFFIXES = (".py", ".h", ".hpp", ".cuh", ".cu", ".cpp", ".cc", ".c", ".inl")
@@ -68,6 +78,7 @@ CODE_SOURCES = {
     "grid": ("grid_baseline", "pbf_cuda/scene.py", "pbf_cuda/noise.py", "bench/statistics.py"),
 }
 STATS_VECTOR_AXES = "xyz"
+GRID_BYTES_PER_CELL = 800    # fields, auxiliaries and jit buffers of the grid baseline in float64
 
 
 def is_checkout(root: Path = REPO_ROOT) -> bool:
@@ -89,30 +100,8 @@ def default_root() -> Path:
     return Path(platformdirs.user_cache_dir("cloudpbf", appauthor=False)) / "runs"
 
 
-# ---- atomic writes ---------------------------------------------------------------------------
-@contextlib.contextmanager
-def atomic_path(path: str | Path):
-    """Yield a temporary path beside `path`; on success it replaces `path` in one rename.
-
-    The temporary file is created with the usual permissions (0666 less the umask), so shared run
-    caches and reports stay readable by others."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp"
-    os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-    return Path(path)
+# ---- atomic writes (pbf_cuda.files: one helper, one file mode, fsync of file and folder) ---------
+from pbf_cuda.files import FILE_MODE, atomic_path, atomic_write_text, remove_stale_temps  # noqa: E402,F401
 
 
 def _json_default(value):
@@ -148,6 +137,14 @@ def _save_npz(path: Path, arrays: dict) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
+
+
+def sha256_file(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 # ---- code version ----------------------------------------------------------------------------
@@ -339,6 +336,13 @@ def _flatten(values: dict) -> dict:
     return out
 
 
+def _scene_params(scene) -> dict:
+    """A scene's parameters without its name and description (what a checkpoint must match)."""
+    data = scene.to_dict()
+    data.pop("scene", None)
+    return json.loads(json.dumps(data, sort_keys=True, default=float))
+
+
 def _nonfinite_fields(arrays: dict) -> list[str]:
     return [name for name, arr in arrays.items()
             if isinstance(arr, np.ndarray) and arr.dtype.kind == "f" and not np.all(np.isfinite(arr))]
@@ -364,6 +368,20 @@ class ParticleAdapter:
     def instability_errors() -> tuple:
         from pbf_cuda.simulation import InstabilityError
         return (InstabilityError, RunInstability)
+
+    @staticmethod
+    def preflight(spec: RunSpec) -> None:
+        """Refuse before anything is made: the backend must exist (RuntimeError), the run must fit in
+        memory (pbf_cuda.SceneError naming the particle count and the memory needed)."""
+        from pbf_cuda.memory import check_memory
+        from pbf_cuda.simulation import _resolve_backend, seeded_scene
+        check_memory(seeded_scene(spec.scene, spec.seed), _resolve_backend(spec.backend))
+
+    @staticmethod
+    def expected_scene(spec: RunSpec):
+        """The scene a checkpoint of this spec must hold."""
+        from pbf_cuda.simulation import seeded_scene
+        return seeded_scene(spec.scene, spec.seed)
 
     @staticmethod
     def create(spec: RunSpec):
@@ -461,6 +479,26 @@ class GridAdapter:
         return (GridInstabilityError, RunInstability)
 
     @staticmethod
+    def preflight(spec: RunSpec) -> None:
+        """Refuse a grid that cannot fit in host memory (CPU runs) before anything is allocated."""
+        from grid_baseline.simulation import grid_shape
+        from pbf_cuda.memory import available_memory
+        from pbf_cuda.scene import SceneError
+        shape = grid_shape(spec.scene, spec.cells_per_spacing, spec.resolution)
+        cells = math.prod(shape)
+        need = cells * GRID_BYTES_PER_CELL
+        if GridAdapter.resolve_backend(spec.backend) == "cpu":
+            avail = available_memory("cpu")
+            if avail is not None and need > 0.8 * avail:
+                raise SceneError(f"{spec.scene.name}: a grid of {cells:,} cells ({shape[0]} x {shape[1]} x "
+                                 f"{shape[2]}) needs about {need / 2**30:.2f} GiB, {avail / 2**30:.2f} GiB "
+                                 f"available; raise particles.spacing or lower cells_per_spacing")
+
+    @staticmethod
+    def expected_scene(spec: RunSpec):
+        return None
+
+    @staticmethod
     def create(spec: RunSpec):
         from grid_baseline import GridSimulation
         sim = GridSimulation(spec.scene, seed=spec.seed, cells_per_spacing=spec.cells_per_spacing,
@@ -523,8 +561,12 @@ class RunResult:
 
     @classmethod
     def load(cls, path: str | Path, cached: bool = False) -> "RunResult":
+        """The result in `path` (not verified: see verify_run and cached_result)."""
         path = Path(path)
-        return cls(path, json.loads((path / "result.json").read_text()), cached)
+        info = json.loads((path / "result.json").read_text())
+        info.pop("manifest", None)
+        info.pop("checksum", None)
+        return cls(path, info, cached)
 
     def __getattr__(self, name):
         info = self.__dict__.get("info", {})
@@ -573,6 +615,112 @@ class RunResult:
         return {**self.info, "path": str(self.path), "cached": self.cached}
 
 
+# ---- verification and quarantine -----------------------------------------------------------------
+# Files of a finished run that the manifest in result.json covers (all but the log, the lock and what
+# only an unfinished attempt reads: progress.json, partial/).
+_UNVERIFIED = {"log.txt", ".lock", "result.json", "progress.json"}
+
+
+def _manifest(directory: Path) -> dict:
+    """{relative path: {"bytes": n, "sha256": hex}} of the run's files."""
+    out = {}
+    for p in sorted(directory.rglob("*")):
+        rel = p.relative_to(directory).as_posix()
+        if not p.is_file() or rel in _UNVERIFIED or rel.startswith("partial/") or _is_temp(p):
+            continue
+        out[rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+    return out
+
+
+def _is_temp(path: Path) -> bool:
+    from pbf_cuda.files import is_temp
+    return is_temp(path)
+
+
+def _info_checksum(info: dict) -> str:
+    body = {k: v for k, v in info.items() if k != "checksum"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=_json_default).encode()).hexdigest()
+
+
+_VERIFIED: dict = {}     # result.json (path, mtime_ns, size) -> True: verified once in this process
+
+
+def verify_run(directory: str | Path, key: str | None = None) -> list[str]:
+    """Problems of a finished run directory (empty: it may be served). Checks result.json (JSON, its own
+    checksum, the run key) and every file of its manifest (present, size, sha256)."""
+    directory = Path(directory)
+    path = directory / "result.json"
+    try:
+        st = path.stat()
+        memo = (str(path), st.st_mtime_ns, st.st_size, key)
+        if memo in _VERIFIED:
+            return []
+        info = json.loads(path.read_text())
+    except FileNotFoundError:
+        return ["result.json is missing"]
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        return [f"result.json is unreadable ({type(exc).__name__}: {str(exc)[:80]})"]
+    if not isinstance(info, dict) or not isinstance(info.get("manifest"), dict):
+        return ["result.json has no manifest (written by an older harness, or damaged)"]
+    if info.get("checksum") != _info_checksum(info):
+        return ["result.json does not match its checksum"]
+    if key is not None and info.get("key") != key:
+        return [f"result.json belongs to run {str(info.get('key'))[:16]}, not {key[:16]}"]
+    problems = []
+    for rel, entry in info["manifest"].items():
+        p = directory / rel
+        if not isinstance(entry, dict) or ".." in Path(rel).parts or Path(rel).is_absolute():
+            problems.append(f"manifest entry {rel[:80]!r} is malformed")
+            continue
+        try:
+            size = p.stat().st_size
+        except (FileNotFoundError, NotADirectoryError):
+            problems.append(f"{rel} is missing")
+            continue
+        except OSError as exc:
+            problems.append(f"{rel} is unreadable ({exc.strerror or exc})")
+            continue
+        if size != entry.get("bytes"):
+            problems.append(f"{rel} has {size} bytes, the manifest says {entry.get('bytes')}")
+            continue
+        try:
+            if sha256_file(p) != entry.get("sha256"):
+                problems.append(f"{rel} does not match its sha256")
+        except OSError as exc:
+            problems.append(f"{rel} is unreadable ({exc.strerror or exc})")
+    if not problems:
+        _VERIFIED[memo] = True
+    return problems
+
+
+def quarantine(directory: Path, names: Iterable[str], reason: str) -> Path | None:
+    """Move the named files/folders of a run directory aside to ROOT/quarantine/<dir>-<time>/ (kept for
+    inspection, never deleted) and log why.  Returns the quarantine folder (None: nothing to move)."""
+    present = [n for n in names if (directory / n).exists()]
+    if not present:
+        return None
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
+    target = directory.parent / QUARANTINE / f"{directory.name}-{stamp}-{os.getpid()}-{os.urandom(3).hex()}"
+    target.mkdir(parents=True, exist_ok=True)
+    for name in present:
+        dest = target / name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(directory / name, dest)
+    from pbf_cuda.files import fsync_dir
+    fsync_dir(directory)
+    fsync_dir(target)
+    message = f"quarantined {', '.join(present)} of {directory.name} to {target} ({reason}); recomputing"
+    with open(directory / "log.txt", "a") as fh:
+        fh.write(f"{_now()} {message}\n")
+    log.warning(message)
+    return target
+
+
+def _finished_files(directory: Path) -> list[str]:
+    """Everything in a run directory but its log and lock (what a failed verification moves aside)."""
+    return sorted(p.name for p in directory.iterdir() if p.name not in ("log.txt", ".lock"))
+
+
 # ---- the run loop --------------------------------------------------------------------------------
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -618,6 +766,7 @@ class _Run:
         self.partial = directory / "partial"
         self.rejects_logged = 0      # split_capacity_rejects at the last capacity warning
         self.rejects = 0             # split_capacity_rejects after the latest step
+        self.refused = False         # True while the simulation is being created (nothing made yet)
 
     def log(self, message: str) -> None:
         with open(self.dir / "log.txt", "a") as fh:
@@ -625,32 +774,70 @@ class _Run:
 
     # -- progress bookkeeping ------------------------------------------------------------------
     def _resume(self):
-        """(sim, progress) from checkpoint.npz + progress.json when they agree, else (None, fresh)."""
+        """(sim, progress) from checkpoint.npz + progress.json when they belong to this run and agree,
+        else (None, fresh); whatever fails a check is moved to the quarantine folder (and logged)."""
         fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0}
         ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
-        if not (self.adapter.can_checkpoint and ckpt.exists() and prog.exists()):
+        attempt = ["checkpoint.npz", "progress.json", "partial"]
+        if not self.adapter.can_checkpoint or not (ckpt.exists() or prog.exists() or self.partial.exists()):
             return None, fresh
-        progress = json.loads(prog.read_text())
+        if not (ckpt.exists() and prog.exists()):
+            quarantine(self.dir, attempt, "checkpoint.npz and progress.json are not both present")
+            return None, fresh
+        try:
+            progress = json.loads(prog.read_text())
+            if not isinstance(progress, dict):
+                raise ValueError("not a JSON object")
+            step = progress["step"]
+            for name in ("step_wall_s", "timed_wall_s", "max_particles"):
+                float(progress[name])
+            if not isinstance(progress["timings"], dict) or not isinstance(step, int):
+                raise ValueError("bad timings or step")
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            quarantine(self.dir, attempt, f"progress.json unreadable: {type(exc).__name__}: {str(exc)[:80]}")
+            return None, fresh
+        if progress.get("key") != self.identity_key:
+            quarantine(self.dir, attempt, "progress.json belongs to another run (key "
+                                          f"{str(progress.get('key'))[:16]}, this run {self.identity_key[:16]})")
+            return None, fresh
+        if progress.get("checkpoint_sha256") != sha256_file(ckpt):
+            quarantine(self.dir, attempt, "checkpoint.npz does not match the sha256 in progress.json")
+            return None, fresh
         try:
             sim = self.adapter.load(ckpt, self.spec)
         except Exception as exc:  # a damaged checkpoint: start over, say so
-            self.log(f"checkpoint unreadable ({exc!r}); starting from step 0")
+            quarantine(self.dir, attempt, f"checkpoint unreadable ({type(exc).__name__}: {str(exc)[:80]})")
             return None, fresh
-        if sim.step_count != progress["step"]:
-            self.log(f"checkpoint step {sim.step_count} != progress step {progress['step']}; starting from step 0")
+        expected = self.adapter.expected_scene(self.spec)
+        if expected is not None and _scene_params(sim.scene) != _scene_params(expected):
+            quarantine(self.dir, attempt, "the checkpoint's scene differs from the run's")
             return None, fresh
+        if sim.step_count != step:
+            quarantine(self.dir, attempt, f"checkpoint step {sim.step_count} != progress step {step}")
+            return None, fresh
+        try:
+            rows = {name: self._partial_rows(name, step) for name in ("stats", "profiles", "steps")}
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            quarantine(self.dir, attempt, f"partial diagnostics unreadable: {type(exc).__name__}: {str(exc)[:80]}")
+            return None, fresh
+        self.resumed_rows = rows
         return sim, progress
 
     def _partial_rows(self, name: str, upto: int) -> list[dict]:
         path = self.partial / f"{name}.json"
         if not path.exists():
             return []
-        return [r for r in json.loads(path.read_text()) if r["step"] <= upto]
+        rows = json.loads(path.read_text())
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise ValueError(f"partial/{name}.json: expected a list of rows")
+        return [r for r in rows if r["step"] <= upto]
 
     def _checkpoint(self, sim, progress: dict) -> None:
         for name, rows in (("stats", self.rows), ("profiles", self.profile_rows), ("steps", self.step_rows)):
             atomic_write_json(self.partial / f"{name}.json", rows, sort_keys=False)  # keeps column order
         self.adapter.save(sim, self.dir / "checkpoint.npz")
+        progress = {**progress, "key": self.identity_key,
+                    "checkpoint_sha256": sha256_file(self.dir / "checkpoint.npz")}
         atomic_write_json(self.dir / "progress.json", progress)
         self.log(f"checkpoint at step {progress['step']}")
 
@@ -680,21 +867,24 @@ class _Run:
     def run(self) -> RunResult:
         spec = self.spec
         started = time.perf_counter()
-        atomic_write_json(self.dir / "config.json", {
-            "identity": self.identity, "key": self.identity_key,
-            "checkpoint_every": spec.checkpoint_interval, "diagnostic_steps": spec.diagnostic_steps(),
-            "snapshot_steps": spec.snapshot_steps(), "created": _now()})
+        self.resumed_rows = {}
         sim, progress = self._resume()
         resumed_from = progress["step"] if sim is not None else None
-        self.rows = self._partial_rows("stats", progress["step"]) if sim else []
-        self.profile_rows = self._partial_rows("profiles", progress["step"]) if sim else []
-        self.step_rows = self._partial_rows("steps", progress["step"]) if sim else []
+        self.rows = self.resumed_rows.get("stats", [])
+        self.profile_rows = self.resumed_rows.get("profiles", [])
+        self.step_rows = self.resumed_rows.get("steps", [])
         if sim is None:
+            self.refused = True            # a failure before the simulation exists leaves nothing behind
             sim = self.adapter.create(spec)
+            self.refused = False
             self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, seed {spec.seed}, "
                      f"backend {getattr(sim, 'backend', spec.backend)}")
         else:
             self.log(f"resume from checkpoint at step {resumed_from}")
+        atomic_write_json(self.dir / "config.json", {
+            "identity": self.identity, "key": self.identity_key,
+            "checkpoint_every": spec.checkpoint_interval, "diagnostic_steps": spec.diagnostic_steps(),
+            "snapshot_steps": spec.snapshot_steps(), "created": _now()})
         base_timings = progress["timings"]
         step_wall = float(progress["step_wall_s"])
         timed_wall = float(progress["timed_wall_s"])      # wall time of the steps after the warm-up
@@ -807,7 +997,10 @@ class _Run:
         if failure is None:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.dir / "progress.json")
+        info["manifest"] = _manifest(self.dir)          # checked whenever the result is served
+        info["checksum"] = _info_checksum(info)
         atomic_write_json(self.dir / "result.json", info)
+        info = {k: v for k, v in info.items() if k not in ("manifest", "checksum")}
         self.log("finished " + ("stable" if failure is None else f"UNSTABLE at step {failure.step}")
                  + f" ({step_wall:.2f} s in steps)")
         return RunResult(self.dir, info, cached=False)
@@ -817,17 +1010,33 @@ def execute(spec: RunSpec, root: str | Path | None = None, *, quiet: bool = Fals
             on_step: Callable[[int], None] | None = None) -> RunResult:
     """Run `spec` (or return its stored result without any work).  See the module docstring.
 
+    A stored result is served only when it passes verify_run; otherwise its files go to the quarantine
+    folder (logged) and the run is computed again.  A run that cannot start (no such backend, too large
+    for the memory) raises before its directory is made.
+
     on_step(step) is called after every chunk of steps (tests use it to simulate a crash)."""
     identity = spec.identity()
     key = spec.key(identity)
     directory = spec.directory(root, key)
-    if (directory / "result.json").exists():
+    if (directory / "result.json").exists() and not verify_run(directory, key):
         return RunResult.load(directory, cached=True)
+    ADAPTERS[spec.solver].preflight(spec)
+    created = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     with _locked(directory):
+        remove_stale_temps(directory, owned=True)       # we hold the lock: no writer is in here
         if (directory / "result.json").exists():
-            return RunResult.load(directory, cached=True)
-        return _Run(spec, identity, key, directory, quiet, on_step).run()
+            problems = verify_run(directory, key)
+            if not problems:
+                return RunResult.load(directory, cached=True)
+            quarantine(directory, _finished_files(directory), "; ".join(problems[:3]))
+        attempt = _Run(spec, identity, key, directory, quiet, on_step)
+        try:
+            return attempt.run()
+        except BaseException:
+            if attempt.refused and created:
+                shutil.rmtree(directory, ignore_errors=True)
+            raise
 
 
 def execute_summary(spec: RunSpec, root: str | Path | None = None) -> dict:
@@ -836,6 +1045,11 @@ def execute_summary(spec: RunSpec, root: str | Path | None = None) -> dict:
 
 
 def cached_result(spec: RunSpec, root: str | Path | None = None) -> RunResult | None:
-    """The stored result of `spec`, or None when it has not run to completion."""
-    directory = spec.directory(root)
-    return RunResult.load(directory, cached=True) if (directory / "result.json").exists() else None
+    """The stored result of `spec` when it is complete and passes verify_run, else None (execute then
+    moves a damaged one aside and recomputes it)."""
+    identity = spec.identity()
+    key = spec.key(identity)
+    directory = spec.directory(root, key)
+    if (directory / "result.json").exists() and not verify_run(directory, key):
+        return RunResult.load(directory, cached=True)
+    return None

@@ -105,21 +105,38 @@ def wave_velocity(scene: Scene, pos: np.ndarray) -> np.ndarray:
 
 
 def boundary_particles(scene: Scene) -> dict[str, np.ndarray]:
-    """Boundary particles: the lattice continued one kernel radius beyond each wall (eq. 18)."""
+    """Boundary particles: the lattice continued one kernel radius beyond each wall (eq. 18).
+
+    Only the shell is built (one slab of lattice indices per wall axis, disjoint), never the lattice of
+    the whole domain, so a large walled box with few fluid particles stays cheap.  The sites come in the
+    order of the extended lattice (x index, then y, then z)."""
     h = scene.kernel_radius
     ds = lattice_spacings(scene)
+    counts = lattice_counts(scene)
     walls = [b == "wall" for b in scene.domain.boundary]
     if not any(walls):
         empty = np.zeros((0, 3), dtype=np.float32)
         return {"position": empty, "temperature": np.zeros(0, np.float32), "vapor": np.zeros(0, np.float32)}
-    axes = [_axis_sites(scene, a, int(math.ceil(h / ds[a])) if walls[a] else 0) for a in range(3)]
-    gx, gy, gz = np.meshgrid(*axes, indexing="ij")
-    pos = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
-    outside = np.zeros(len(pos), dtype=bool)
+    ext = [int(math.ceil(h / ds[a])) if walls[a] else 0 for a in range(3)]
+    full = [np.arange(-ext[a], counts[a] + ext[a]) for a in range(3)]
+    pieces = []
     for a in range(3):
-        if walls[a]:
-            outside |= (pos[:, a] < 0.0) | (pos[:, a] > scene.domain.size[a])
-    pos = pos[outside]
+        if not walls[a]:
+            continue
+        # Sites outside the walls of axis a, inside the walls of the wall axes before it (disjoint slabs).
+        ranges = []
+        for b in range(3):
+            if b == a:
+                ranges.append(np.concatenate([np.arange(-ext[a], 0), np.arange(counts[a], counts[a] + ext[a])]))
+            elif b < a and walls[b]:
+                ranges.append(np.arange(counts[b]))
+            else:
+                ranges.append(full[b])
+        grids = np.meshgrid(*ranges, indexing="ij")
+        pieces.append(np.stack([g.ravel() for g in grids], axis=1))
+    idx = np.concatenate(pieces)
+    idx = idx[np.lexsort((idx[:, 2], idx[:, 1], idx[:, 0]))]
+    pos = (idx + 0.5) * ds
     out = {"position": np.ascontiguousarray(pos, dtype=np.float32)}
     if scene.thermodynamics:
         # Boundary particles carry the environment profile at their own height (linear

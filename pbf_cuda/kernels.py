@@ -10,8 +10,8 @@ import numpy as np
 
 
 def _core():
-    from . import _core as core
-    return core
+    from .buildinfo import checked_core
+    return checked_core()
 
 
 def poly6(r, h):

@@ -48,6 +48,32 @@ class SceneError(ValueError):
     """A scene file or parameter set is invalid. The message names the field."""
 
 
+MAX_SCENE_BYTES = 1 << 20        # a scene file larger than this is refused (1 MiB)
+MAX_EXTENDS_DEPTH = 16           # scene.extends chains longer than this are refused
+MAX_NAME_CHARS = 200             # scene.name
+MAX_DESCRIPTION_CHARS = 10_000   # scene.description
+SHORT_VALUE_CHARS = 60           # values are shortened to this in error messages
+
+
+def short_text(text: str, limit: int = SHORT_VALUE_CHARS) -> str:
+    """`text` cut to about `limit` characters, without quotes (for names and paths in messages)."""
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit - 20]}...{text[-8:]} ({len(text)} chars)"
+
+
+def short(value: Any, limit: int = SHORT_VALUE_CHARS) -> str:
+    """repr(value) cut to `limit` characters (error messages never echo a huge value whole)."""
+    try:
+        text = repr(value)
+    except Exception:  # noqa: BLE001  (a value whose repr fails still gets a message)
+        text = f"<{type(value).__name__}>"
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit - 20]}...{text[-8:]} ({len(text)} chars)"
+
+
 def _spec(default, lo=None, hi=None, unit="", doc="", choices=None, length=None):
     """Declare a field: default, inclusive range [lo, hi], unit, meaning."""
     return field(
@@ -81,7 +107,9 @@ class Time:
     dt: float = _spec(2.0, 1e-6, 1e3, "s", "time step")
     steps: int = _spec(400, 1, 10**7, "", "default number of steps of a run")
     snapshot_every: int = _spec(50, 1, 10**7, "", "steps between saved snapshots")
-    check_every: int = _spec(1, 1, 10**6, "", "steps between NaN / instability checks")
+    check_every: int = _spec(1, 1, 64, "",
+                             "steps between NaN / instability checks (at most 64, so an instability is "
+                             "reported within 64 steps of where it happened)")
 
 
 @dataclass
@@ -278,20 +306,20 @@ def _check_value(where: str, value: Any, meta: dict, default: Any):
     unit = f" {meta['unit']}" if meta["unit"] else ""
     if isinstance(default, bool):
         if not isinstance(value, bool):
-            raise SceneError(f"{where} = {value!r}: expected true or false")
+            raise SceneError(f"{where} = {short(value)}: expected true or false")
         return value
     if isinstance(default, str) or (choices and not isinstance(default, list)):
         if not isinstance(value, str) or (choices and value not in choices):
-            raise SceneError(f"{where} = {value!r}: allowed values are {', '.join(choices)}")
+            raise SceneError(f"{where} = {short(value)}: allowed values are {', '.join(choices or ['any text'])}")
         return value
     if isinstance(default, list) or length is not None:
         if not isinstance(value, list) or (length is not None and len(value) != length):
             n = f"{length} " if length else ""
-            raise SceneError(f"{where} = {value!r}: expected a list of {n}values")
+            raise SceneError(f"{where} = {short(value)}: expected a list of {n}values")
         if choices:
             for item in value:
                 if item not in choices:
-                    raise SceneError(f"{where} = {value!r}: each entry must be one of {', '.join(choices)}")
+                    raise SceneError(f"{where} = {short(value)}: each entry must be one of {', '.join(choices)}")
             return list(value)
         return [_check_number(f"{where}[{i}]", v, lo, hi, unit, float) for i, v in enumerate(value)]
     kind = int if isinstance(default, int) else float
@@ -300,12 +328,16 @@ def _check_value(where: str, value: Any, meta: dict, default: Any):
 
 def _check_number(where, value, lo, hi, unit, kind):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneError(f"{where} = {value!r}: expected a number in [{lo}, {hi}]{unit}")
-    if kind is int and (not float(value).is_integer()):
-        raise SceneError(f"{where} = {value!r}: expected an integer in [{lo}, {hi}]")
+        raise SceneError(f"{where} = {short(value)}: expected a number in [{lo}, {hi}]{unit}")
+    if isinstance(value, int) and abs(value) > 2**63:   # beyond float range or any field's
+        raise SceneError(f"{where} = {short(value)} is out of range: allowed [{lo}, {hi}]{unit}")
+    if kind is int and isinstance(value, float) and not value.is_integer():
+        raise SceneError(f"{where} = {short(value)}: expected an integer in [{lo}, {hi}]")
+    if kind is int and not math.isfinite(value):
+        raise SceneError(f"{where} = {short(value)} is out of range: allowed [{lo}, {hi}]{unit}")
     value = kind(value)
     if not math.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
-        raise SceneError(f"{where} = {value!r} is out of range: allowed [{lo}, {hi}]{unit}")
+        raise SceneError(f"{where} = {short(value)} is out of range: allowed [{lo}, {hi}]{unit}")
     return value
 
 
@@ -315,7 +347,7 @@ def _build_section(name: str, cls, data: dict, source: str):
     known = {f.name: f for f in fields(cls)}
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise SceneError(f"{source}: unknown field {name}.{unknown[0]}; known fields: {', '.join(known)}")
+        raise SceneError(f"{source}: unknown field {name}.{short_text(unknown[0])}; known fields: {', '.join(known)}")
     obj = cls()
     for key, value in data.items():
         f = known[key]
@@ -371,19 +403,35 @@ def scene_from_dict(data: dict, source: str = "scene") -> Scene:
     if not isinstance(data, dict):
         raise SceneError(f"{source}: expected a table at the top level")
     allowed = {"scene", *SECTIONS}
-    unknown = sorted(set(data) - allowed)
+    unknown = sorted(map(str, set(data) - allowed))
     if unknown:
-        raise SceneError(f"{source}: unknown section [{unknown[0]}]; known sections: {', '.join(sorted(allowed))}")
+        raise SceneError(f"{source}: unknown section [{short_text(unknown[0])}]; "
+                         f"known sections: {', '.join(sorted(allowed))}")
     head = data.get("scene", {})
-    scene = Scene(name=str(head.get("name", source)), description=str(head.get("description", "")))
-    extra = set(head) - {"name", "description", "extends"}
+    if not isinstance(head, dict):
+        raise SceneError(f"{source}: [scene] = {short(head)} must be a table (name, description, extends)")
+    extra = sorted(map(str, set(head) - {"name", "description", "extends"}))
     if extra:
-        raise SceneError(f"{source}: unknown field scene.{sorted(extra)[0]}; known fields: name, description, extends")
+        raise SceneError(f"{source}: unknown field scene.{short_text(extra[0])}; known fields: name, description, extends")
+    name = head.get("name", _default_name(source))
+    if not isinstance(name, str) or not 1 <= len(name) <= MAX_NAME_CHARS:
+        raise SceneError(f"{source}: scene.name = {short(name)}: expected a text of 1 to {MAX_NAME_CHARS} characters")
+    description = head.get("description", "")
+    if not isinstance(description, str) or len(description) > MAX_DESCRIPTION_CHARS:
+        raise SceneError(f"{source}: scene.description = {short(description)}: expected a text of at most "
+                         f"{MAX_DESCRIPTION_CHARS} characters")
+    scene = Scene(name=name, description=description)
     for key, cls in SECTIONS.items():
         if key in data:
             setattr(scene, key, _build_section(key, cls, data[key], source))
     _cross_checks(scene, source)
     return scene
+
+
+def _default_name(source: str) -> str:
+    """A scene without scene.name is named after its file (the source's stem)."""
+    stem = Path(str(source)).stem if str(source).endswith(".toml") else str(source)
+    return stem[:MAX_NAME_CHARS] or "unnamed"
 
 
 def list_scenes() -> list[str]:
@@ -400,38 +448,135 @@ def _merge(base: dict, top: dict) -> dict:
     return out
 
 
+def _read_scene_file(path: Path, what: str) -> dict:
+    """A scene file's TOML as a dict; every failure (missing, not a regular file, too large, not UTF-8,
+    not TOML) is a SceneError naming the file."""
+    try:
+        st = path.stat()
+    except (OSError, ValueError) as exc:
+        raise SceneError(f"{what}: cannot read scene file {short(str(path))}: "
+                         f"{getattr(exc, 'strerror', None) or exc}") from None
+    import stat as _stat
+    if not _stat.S_ISREG(st.st_mode):
+        raise SceneError(f"{what}: {short(str(path))} is not a regular file (a scene is a .toml file)")
+    if st.st_size > MAX_SCENE_BYTES:
+        raise SceneError(f"{what}: {short(str(path))} has {st.st_size} bytes; a scene file may have at most "
+                         f"{MAX_SCENE_BYTES}")
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_SCENE_BYTES + 1)
+    except OSError as exc:
+        raise SceneError(f"{what}: cannot read scene file {short(str(path))}: {exc.strerror or exc}") from None
+    if len(raw) > MAX_SCENE_BYTES:
+        raise SceneError(f"{what}: {short(str(path))} is larger than {MAX_SCENE_BYTES} bytes")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"{path}: not UTF-8 text (byte {exc.start}); a scene is a TOML file") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {short_text(str(exc), 200)}") from None
+    except (RecursionError, ValueError, OverflowError) as exc:
+        raise SceneError(f"{path}: not a usable TOML file: {type(exc).__name__}: {short(str(exc))}") from None
+
+
+def _shipped(name: str) -> Path | None:
+    """bench/scenes/NAME.toml when `name` is a shipped scene's name."""
+    if isinstance(name, str) and name in list_scenes():
+        return SCENE_DIR / f"{name}.toml"
+    return None
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except (OSError, ValueError):       # a name too long for the filesystem, a NUL byte
+        return False
+
+
 def _resolve_path(name_or_path: str | Path) -> Path:
+    """A shipped scene's name or a path to a scene file (as given by the caller)."""
+    text = str(name_or_path)
+    if not text or len(text) > 4096 or "\0" in text:
+        raise SceneError(f"scene {short(text)}: expected a shipped scene's name or a path to a .toml "
+                         f"file; shipped scenes: {', '.join(list_scenes())}")
     path = Path(name_or_path)
-    if not path.suffix and not path.exists():
-        path = SCENE_DIR / f"{name_or_path}.toml"
-    if not path.exists():
-        raise SceneError(f"scene '{name_or_path}' not found; shipped scenes: {', '.join(list_scenes())}")
-    return path
+    if _exists(path):
+        return path
+    shipped = _shipped(text) if not path.suffix else None
+    if shipped is not None:
+        return shipped
+    raise SceneError(f"scene '{short_text(text)}' not found; shipped scenes: {', '.join(list_scenes())}")
+
+
+def _resolve_extends(parent: Any, including: Path) -> Path:
+    """scene.extends of the file `including`: a shipped scene's name, or a path (relative to the including
+    file's folder) to a regular file inside that folder."""
+    where = f"{including}: scene.extends = {short(parent)}"
+    allowed = (f"allowed: a shipped scene ({', '.join(list_scenes())}) or a .toml file in "
+               f"{short(str(including.parent))}")
+    if not isinstance(parent, str) or not parent or len(parent) > 1024 or "\0" in parent:
+        raise SceneError(f"{where}: {allowed}")
+    shipped = _shipped(parent)
+    base = including.resolve().parent
+    candidate = (base / parent)
+    if shipped is not None and not candidate.exists():
+        return shipped
+    try:
+        resolved = candidate.resolve()
+    except (OSError, RuntimeError, ValueError):
+        raise SceneError(f"{where}: cannot be resolved; {allowed}") from None
+    if not resolved.is_relative_to(base):
+        raise SceneError(f"{where}: outside the including file's folder; {allowed}")
+    if shipped is None and not resolved.exists() and resolved.suffix != ".toml":
+        raise SceneError(f"{where}: no such scene; {allowed}")
+    return resolved
 
 
 def read_scene_dict(name_or_path: str | Path, _seen: tuple = ()) -> dict:
-    """The scene file as a dict, with `scene.extends = "other"` resolved (other's values, overridden)."""
-    path = _resolve_path(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"{path}: not valid TOML: {exc}") from None
-    parent = data.get("scene", {}).get("extends")
+    """The scene file as a dict, with `scene.extends = "other"` resolved (other's values, overridden).
+
+    `extends` names a shipped scene or a file in the including file's folder (or below it); chains
+    are at most MAX_EXTENDS_DEPTH long and may not loop (compared by resolved path)."""
+    path = _resolve_path(name_or_path) if not _seen else Path(name_or_path)
+    resolved = path.resolve()
+    if resolved in _seen:
+        chain = " -> ".join(p.name for p in (*_seen, resolved))
+        raise SceneError(f"{_seen[-1]}: scene.extends forms a cycle: {chain}")
+    if len(_seen) >= MAX_EXTENDS_DEPTH:
+        raise SceneError(f"{_seen[-1]}: scene.extends chain longer than {MAX_EXTENDS_DEPTH} files")
+    data = _read_scene_file(path, str(_seen[-1]) if _seen else "scene")
+    head = data.get("scene", {})
+    if not isinstance(head, dict):
+        raise SceneError(f"{path}: [scene] = {short(head)} must be a table (name, description, extends)")
+    parent = head.get("extends")
     if parent is not None:
-        if not isinstance(parent, str):
-            raise SceneError(f"{path.stem}: scene.extends = {parent!r}: expected a scene name")
-        if parent in _seen:
-            raise SceneError(f"{path.stem}: scene.extends forms a cycle: {' -> '.join(_seen + (parent,))}")
-        base = read_scene_dict(parent, _seen + (path.stem,))
-        base.get("scene", {}).pop("description", None)
+        parent_path = _resolve_extends(parent, path)
+        base = read_scene_dict(parent_path, (*_seen, resolved))
+        base_head = base.get("scene", {})
+        if isinstance(base_head, dict):
+            base_head.pop("description", None)
         data = _merge(base, data)
-    data.get("scene", {}).pop("extends", None)
+    head = data.get("scene", {})
+    if isinstance(head, dict):
+        head.pop("extends", None)
     return data
 
 
 def load_scene(name_or_path: str | Path, **overrides) -> Scene:
-    """Load a scene by name (bench/scenes/NAME.toml) or path, apply dotted overrides."""
+    """Load a scene by name (bench/scenes/NAME.toml) or path, apply dotted overrides.
+
+    Every failure is a SceneError naming the file, the field and what is allowed."""
     path = _resolve_path(name_or_path)
-    data = read_scene_dict(path)
-    scene = scene_from_dict(data, source=path.stem)
-    return scene.replace(**overrides) if overrides else scene
+    try:
+        data = read_scene_dict(path)
+        scene = scene_from_dict(data, source=str(path) if path.parent != SCENE_DIR else path.stem)
+        if "name" not in (data.get("scene") or {}):
+            scene.name = path.stem[:MAX_NAME_CHARS] or "unnamed"
+        return scene.replace(**overrides) if overrides else scene
+    except SceneError:
+        raise
+    except (ValueError, TypeError, AttributeError, OverflowError, RecursionError, OSError, MemoryError) as exc:
+        # A last line of defence: whatever slipped through the checks above still names the file.
+        raise SceneError(f"{path}: invalid scene ({type(exc).__name__}: {short_text(str(exc))})") from None

@@ -21,6 +21,7 @@ from . import initial_state
 from .files import atomic_savez, read_meta
 from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
+from .memory import check_memory
 from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
@@ -47,8 +48,18 @@ class InstabilityError(RuntimeError):
 
 
 def _core():
-    from . import _core as core  # compiled module
-    return core
+    """The compiled module, refused (StaleBuildError) when built from other sources than pbf_cuda/csrc."""
+    from .buildinfo import checked_core
+    return checked_core()
+
+
+def seeded_scene(scene: Scene, seed: int | None) -> Scene:
+    """The scene a Simulation with `seed` runs: particles.seed and the noise offset follow the seed."""
+    if seed is None:
+        return scene
+    return scene.replace(**{"particles.seed": int(seed),
+                            **({"atmosphere.noise_offset": noise_offset_for_seed(seed)}
+                               if scene.thermodynamics else {})})
 
 
 def available_backends() -> list[str]:
@@ -174,12 +185,12 @@ class Simulation:
                  _state: dict | None = None):
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
-        if seed is not None:
-            scene = scene.replace(**{"particles.seed": int(seed),
-                                     **({"atmosphere.noise_offset": noise_offset_for_seed(seed)}
-                                        if scene.thermodynamics else {})})
+        scene = seeded_scene(scene, seed)
         self.scene = scene
         self.backend = _resolve_backend(backend)
+        # Refuse what cannot fit before anything is allocated (SceneError naming count and memory).
+        check_memory(scene, self.backend, fluid=len(_state["fluid"]["id"]) if _state else None,
+                     boundary=len(_state["boundary"]["position"]) if _state else None)
         fluid = _state["fluid"] if _state else initial_state.fluid_particles(scene)
         boundary = _state["boundary"] if _state else initial_state.boundary_particles(scene)
         n = len(fluid["id"])
@@ -280,6 +291,18 @@ class Simulation:
         }
         for key in ("temperature", "vapor", "cloud"):
             arrays[key] = np.ascontiguousarray(fluid.get(key, zeros), np.float32)
+        for key, arr in arrays.items():
+            if len(arr) != n:
+                raise ValueError(f"from_arrays: fluid['{key}'] has {len(arr)} rows, position has {n}")
+        if "id" in fluid and n:
+            ids = np.asarray(fluid["id"])
+            if ids.dtype.kind not in "ui" or ids.min() < 0 or ids.max() > np.iinfo(np.uint32).max - 1:
+                raise ValueError(f"from_arrays: fluid['id'] must be integers in [0, {np.iinfo(np.uint32).max - 1}]")
+            unique, counts = np.unique(arrays["id"], return_counts=True)
+            if len(unique) != n:
+                dup = unique[counts > 1]
+                raise ValueError(f"from_arrays: fluid['id'] holds {len(dup)} duplicated id(s) "
+                                 f"({', '.join(map(str, dup[:8]))}{', ...' if len(dup) > 8 else ''}); ids must be unique")
         boundary = boundary if boundary is not None else initial_state.boundary_particles(scene)
         state = {"fluid": arrays, "boundary": boundary, "step": 0, "time": 0.0, "next_id": int(arrays["id"].max()) + 1 if n else 0}
         return cls(scene, backend=backend, _state=state)

@@ -107,6 +107,15 @@ class ToyAdapter(runs.ParticleAdapter):
         return (runs.RunInstability,)
 
     @staticmethod
+    def preflight(spec):
+        from pbf_cuda.memory import check_memory
+        check_memory(spec.scene, "cpu")
+
+    @staticmethod
+    def expected_scene(spec):
+        return spec.scene            # the toy keeps the scene as given (no seeded noise offset)
+
+    @staticmethod
     def create(spec):
         return ToySimulation(spec.scene, seed=spec.seed)
 

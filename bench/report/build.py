@@ -27,8 +27,6 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -698,11 +696,8 @@ def build_report(out_dir) -> Path:
         Markup=jinja2.utils.markupsafe.Markup,
     )
     target = out / "index.html"
-    fd, tmp = tempfile.mkstemp(prefix=".index.html.", dir=out)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(page)
-    os.chmod(tmp, 0o644)  # mkstemp makes 0600; the report is meant to be read by anyone
-    os.replace(tmp, target)
+    from pbf_cuda.files import atomic_write_text
+    atomic_write_text(target, page)
     return target
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 import traceback
 from dataclasses import dataclass, field
@@ -29,6 +30,26 @@ INLINE = "inline"
 
 class StudyError(RuntimeError):
     """Some runs of a study failed (not instabilities: those are results).  Finished runs stay cached."""
+
+
+class SchedulerError(ValueError):
+    """The --scheduler address is malformed or no dask scheduler answers there."""
+
+
+_SCHEDULER = re.compile(r"^(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?$")
+SCHEDULER_TIMEOUT_S = float(os.environ.get("CLOUDPBF_SCHEDULER_TIMEOUT", "10"))
+
+
+def check_scheduler_address(address: str) -> str:
+    """'inline' or a dask scheduler address ([tcp|tls|ucx|ws|wss://]host:port); SchedulerError otherwise."""
+    if address == INLINE:
+        return address
+    m = _SCHEDULER.match(address or "")
+    if not m or not 1 <= int(m.group(3)) <= 65535:
+        shown = address if len(address or "") <= 60 else address[:57] + "..."
+        raise SchedulerError(f"'{shown}': expected 'inline' or a dask scheduler address such as "
+                             f"tcp://host:8786 (scheme tcp, tls, ucx, ws or wss; port 1-65535)")
+    return address
 
 
 def _where(exc: BaseException) -> str:
@@ -95,6 +116,8 @@ class StudyContext:
         self.runs_root = Path(self.runs_root).resolve()
         if self.workers is not None and not 1 <= int(self.workers) <= 4096:
             raise ValueError(f"workers = {self.workers}: expected an integer in [1, 4096]")
+        if self.scheduler is not None:
+            check_scheduler_address(self.scheduler)
         self._client = None
         self._cluster = None
 
@@ -204,7 +227,14 @@ class StudyContext:
         if self._client is None:
             from distributed import Client
             if self.scheduler:
-                self._client = Client(self.scheduler)
+                # dask moves pickles between the client, the scheduler and the workers: a remote
+                # scheduler must be one you trust (see docs/harness.md).
+                try:
+                    self._client = Client(self.scheduler, timeout=SCHEDULER_TIMEOUT_S)
+                except (OSError, TimeoutError, ValueError) as exc:
+                    why = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+                    raise SchedulerError(f"no dask scheduler answered at {self.scheduler} within "
+                                         f"{SCHEDULER_TIMEOUT_S:g} s ({why})") from None
             else:
                 gpus = [] if self.workers else self._gpus()
                 self._cluster = local_cluster(self.n_workers(), gpus)

@@ -203,6 +203,10 @@ double reference_gradient_norm2(float h, float d, float m, float rho0) {
 
 }  // namespace
 
+#ifndef PBF_SOURCE_HASH
+#define PBF_SOURCE_HASH "unknown"
+#endif
+
 // beta_0 = grad C_ii / |grad C_i|^2 of the smoothing constraint (eq. 13, 16, 17) for a full lattice
 // neighbourhood, m^2 (negative: grad C_ii < 0). The solver multiplies it by kappa.
 double reference_smoothing_beta(float h, float d, float m, float rho0, float eps_rel) {
@@ -295,6 +299,7 @@ NB_MODULE(_core, m) {
         .def("reset_timings", [](PySolver& s) { s.impl_->reset_timings(); })
         .def("stats", &PySolver::stats);
 
+    m.def("source_hash", []() { return std::string(PBF_SOURCE_HASH); });  // csrc hash (CMakeLists.txt)
     m.def("cuda_built", &cuda_built);
     m.def("cuda_device_count", &device_count);
     // The CUDA architectures compiled in (CMake syntax, comma-separated: "75-real,...,90-real,90-virtual").

@@ -1,0 +1,153 @@
+"""Memory a particle simulation needs, estimated before anything is allocated.
+
+The estimate counts the solver's per-slot arrays (solver_impl.inl: six float4, nine float, eight
+uint32 and two byte-sized arrays per particle slot, plus sorting scratch), the boundary particles,
+the uniform cell grid, and the host arrays built while the initial state is made.  Adaptive scenes
+reserve ``adaptive.capacity`` slots per initial particle.  :func:`check_memory` compares it with
+what the chosen device has available and raises :class:`~pbf_cuda.scene.SceneError` naming the
+particle count and the memory needed.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from .scene import Scene, SceneError
+
+__all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memory", "BYTES_PER_SLOT"]
+
+# Device bytes per particle slot, per backend (fluid state, sort scratch, adaptivity arrays).
+BYTES_PER_SLOT = {"cpu": 224, "cuda": 224}
+BYTES_PER_BOUNDARY = 48          # float4 position, three floats, sort keys
+BYTES_PER_CELL = 16              # fluid and boundary cell start/end (uint32 each)
+HOST_BYTES_PER_PARTICLE = 160    # numpy arrays while the initial state is built (float64 lattices)
+HOST_BYTES_PER_BOUNDARY = 96
+MAX_CELLS = 2**32 - 1            # the solver's cell index is a uint32
+MAX_SLOTS = 2**32 - 2            # particle ids are uint32
+SAFETY = 0.8                     # use at most this fraction of what is available
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    fluid: int          # initial fluid particles
+    slots: int          # preallocated particle slots (adaptive capacity included)
+    boundary: int       # boundary particles
+    cells: int          # cells of the neighbour grid
+    device_bytes: int   # solver arrays on the backend's device
+    host_bytes: int     # numpy arrays on the host while the state is built
+
+    def describe(self) -> str:
+        extra = f" ({self.slots:,} slots with the adaptive capacity)" if self.slots != self.fluid else ""
+        return (f"{self.fluid:,} fluid particles{extra}, {self.boundary:,} boundary particles, "
+                f"{self.cells:,} grid cells")
+
+
+def _lattice(scene: Scene) -> tuple[list[int], list[int]]:
+    """Sites per axis of the domain lattice and boundary layers per wall axis (initial_state's lattice)."""
+    d = scene.particles.spacing
+    counts = [max(1, int(round(L / d))) for L in scene.domain.size]
+    h = scene.kernel_radius
+    ext = [int(math.ceil(h / (L / n))) if b == "wall" else 0
+           for L, n, b in zip(scene.domain.size, counts, scene.domain.boundary)]
+    return counts, ext
+
+
+def boundary_count(scene: Scene) -> int:
+    """Boundary particles of the scene (the shell of initial_state.boundary_particles), counted."""
+    counts, ext = _lattice(scene)
+    if not any(ext):
+        return 0
+    return math.prod(n + 2 * e for n, e in zip(counts, ext)) - math.prod(counts)
+
+
+def cell_count(scene: Scene) -> int:
+    """Cells of the solver's neighbour grid (grid.h: cells of at least the kernel radius)."""
+    h = scene.kernel_radius
+    total = 1
+    for L, b in zip(scene.domain.size, scene.domain.boundary):
+        if b == "periodic":
+            total *= max(3, int(math.floor(L / h)))
+        else:
+            total *= max(1, int(math.ceil((L + 2.0 * h) / h - 1e-4)))
+    return total
+
+
+def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
+                    boundary: int | None = None) -> MemoryEstimate:
+    """Bytes a Simulation of `scene` needs on `backend` ('cpu' or 'cuda'); `fluid`/`boundary` override
+    the particle counts (a simulation made from given arrays)."""
+    n = scene.estimated_particles() if fluid is None else int(fluid)
+    slots = n
+    if scene.adaptive.enabled:
+        slots = max(n, int(math.ceil(n * scene.adaptive.capacity)))
+    nb = boundary_count(scene) if boundary is None else int(boundary)
+    cells = cell_count(scene)
+    device = slots * BYTES_PER_SLOT.get(backend, BYTES_PER_SLOT["cpu"]) + nb * BYTES_PER_BOUNDARY \
+        + cells * BYTES_PER_CELL
+    host = n * HOST_BYTES_PER_PARTICLE + nb * HOST_BYTES_PER_BOUNDARY
+    return MemoryEstimate(n, slots, nb, cells, device, host)
+
+
+def _cgroup_available() -> int | None:
+    """Memory left under this process's cgroup (v2) limit, if there is one."""
+    try:
+        base = Path("/sys/fs/cgroup")
+        limit = (base / "memory.max").read_text().strip()
+        if limit == "max":
+            return None
+        return max(0, int(limit) - int((base / "memory.current").read_text().strip()))
+    except (OSError, ValueError):
+        return None
+
+
+def available_memory(backend: str = "cpu") -> int | None:
+    """Bytes available on `backend`'s device: host memory for 'cpu' (psutil, else sysconf, capped by a
+    cgroup limit); for 'cuda' the free device memory when the compiled module reports it, else None."""
+    if backend == "cuda":
+        try:
+            from . import _core as core
+            info = getattr(core, "cuda_memory_info", None)
+            return int(info()[0]) if info is not None else None
+        except Exception:  # noqa: BLE001  (no device information: skip the device check)
+            return None
+    try:
+        import psutil
+        host = int(psutil.virtual_memory().available)
+    except Exception:  # noqa: BLE001
+        try:
+            host = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            return None
+    cgroup = _cgroup_available()
+    return min(host, cgroup) if cgroup is not None else host
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.2f} GiB" if n >= 2**28 else f"{n / 2**20:.1f} MiB"
+
+
+def check_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
+                 boundary: int | None = None) -> MemoryEstimate:
+    """Raise SceneError when `scene` cannot fit on `backend`; returns the estimate otherwise."""
+    est = estimate_memory(scene, backend, fluid, boundary)
+    if est.slots > MAX_SLOTS:
+        raise SceneError(f"{scene.name}: {est.fluid:,} particles ({est.slots:,} slots) exceed the solver's "
+                         f"limit of {MAX_SLOTS:,} (uint32 ids); raise particles.spacing or lower adaptive.capacity")
+    if est.cells > MAX_CELLS:
+        raise SceneError(f"{scene.name}: {est.cells:,} grid cells exceed the solver's limit of {MAX_CELLS:,}; "
+                         f"the domain is too large for the kernel radius (domain.size, particles.spacing)")
+    host = available_memory("cpu")
+    host_need = est.host_bytes + (est.device_bytes if backend == "cpu" else 0)
+    if host is not None and host_need > SAFETY * host:
+        raise SceneError(f"{scene.name}: {est.describe()} need about {_gib(host_need)} of host memory on the "
+                         f"{backend} backend, {_gib(host)} available; lower the particle count (particles.spacing, "
+                         f"--particles) or adaptive.capacity")
+    if backend == "cuda":
+        device = available_memory("cuda")
+        if device is not None and est.device_bytes > SAFETY * device:
+            raise SceneError(f"{scene.name}: {est.describe()} need about {_gib(est.device_bytes)} of GPU memory, "
+                             f"{_gib(device)} free; lower the particle count (particles.spacing, --particles) "
+                             f"or adaptive.capacity")
+    return est
