@@ -24,6 +24,7 @@ BYTES_PER_BOUNDARY = 48          # float4 position, three floats, sort keys
 BYTES_PER_CELL = 16              # fluid and boundary cell start/end (uint32 each)
 HOST_BYTES_PER_PARTICLE = 160    # numpy arrays while the initial state is built (float64 lattices)
 HOST_BYTES_PER_BOUNDARY = 96
+BYTES_PER_SLOT_VELOCITY_PROJECTION = 20   # conjugate-gradient r, p, q, diag and the warm-start mu (floats)
 MAX_CELLS = 2**32 - 1            # the solver's cell index is a uint32
 MAX_SLOTS = 2**32 - 2            # particle ids are uint32
 SAFETY = 0.8                     # use at most this fraction of what is available
@@ -84,8 +85,10 @@ def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None
         slots = max(n, int(math.ceil(n * scene.adaptive.capacity)))
     nb = boundary_count(scene) if boundary is None else int(boundary)
     cells = cell_count(scene)
-    device = slots * BYTES_PER_SLOT.get(backend, BYTES_PER_SLOT["cpu"]) + nb * BYTES_PER_BOUNDARY \
-        + cells * BYTES_PER_CELL
+    per_slot = BYTES_PER_SLOT.get(backend, BYTES_PER_SLOT["cpu"])
+    if scene.pbf.projection == "velocity":
+        per_slot += BYTES_PER_SLOT_VELOCITY_PROJECTION
+    device = slots * per_slot + nb * BYTES_PER_BOUNDARY + cells * BYTES_PER_CELL
     host = n * HOST_BYTES_PER_PARTICLE + nb * HOST_BYTES_PER_BOUNDARY
     return MemoryEstimate(n, slots, nb, cells, device, host)
 
