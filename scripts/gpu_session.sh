@@ -41,6 +41,20 @@ for step in "$@"; do
                         --out "$R/data/constant_gravity.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
+    slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista
+      timeout 200 python3 - "$OUT" <<'PY'
+import os, sys, numpy as np
+from pbf_cuda import Simulation, load_scene
+base = load_scene("smoothing_slab")
+for tag, scene in (("unsmoothed", base.replace(**{"smoothing.kappa": 0.0})), ("smoothed", base)):
+    sim = Simulation(scene, backend="cuda", seed=0)
+    sim.step(scene.time.steps)
+    st = sim.state()
+    np.savez_compressed(os.path.join(sys.argv[1], f"slab_{tag}.npz"), position=st["position"], cloud=st["cloud"],
+                        temperature=st["temperature"], step=sim.step_count)
+    print("slab", tag, sim.n_particles, "cloudy", int((st["cloud"] > 1e-5).sum()), "step", sim.step_count)
+PY
+      ;;
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
       python3 - "$R" <<PY
 import sys, glob, numpy as np, pandas as pd
