@@ -62,7 +62,7 @@ def periodic_box(viscosity, n=32, depth=8, dt=0.01):
         "domain": {"size": [1.0, 1.0, depth * d], "boundary": ["periodic", "periodic", "periodic"]},
         "particles": {"spacing": d, "rest_density": 1000.0},
         "time": {"dt": dt},
-        "pbf": {"projection": "velocity", "unilateral": False, "relaxation": 1.0, "scorr_k": 0.05,
+        "pbf": {"projection": "velocity", "unilateral": False, "relaxation": 1.0, "scorr_k": 0.1,
                 "divergence_iterations": 4, "xsph": 0.0, "vorticity": 0.0, "viscosity": viscosity},
     }, source="periodic_box")
 

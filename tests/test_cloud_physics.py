@@ -105,7 +105,8 @@ def test_moist_static_energy_is_conserved_along_particles(backend):
 
 
 def smoothing_sim(temperature_of, kappa=0.1):
-    scene = small_cloud_scene(**{"smoothing.kappa": kappa, "atmosphere.heating_rate": 0.0,
+    # scorr_k = 0: a lattice next to a wall settles a little under s_corr; these tests are about smoothing alone
+    scene = small_cloud_scene(**{"smoothing.kappa": kappa, "atmosphere.heating_rate": 0.0, "pbf.scorr_k": 0.0,
                                  "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
                                  "particles.max_speed": 0.0, "time.dt": 1e-3})
     base = Simulation(scene, backend="cpu")
@@ -119,10 +120,11 @@ def smoothing_sim(temperature_of, kappa=0.1):
 
 def test_smoothing_keeps_the_environment_and_linear_anomalies_and_conserves_heat():
     # Smoothing acts on T - T0(y) (eq. 12-17 in pairwise form, adiabatic walls): the environment profile is
-    # a fixed point everywhere, a linear anomaly (zero Laplacian) is unchanged away from the walls, and the
+    # a fixed point everywhere, an anomaly linear in height (zero Laplacian; x and z are periodic) is unchanged
+    # away from the walls, and the
     # mass-weighted sum of T is conserved exactly (in float64 sums, up to float32 rounding of each T).
     env = lambda p: 300.0 - 0.0065 * p[:, 1]
-    for field, interior_only in ((env, False), (lambda p: env(p) + 0.004 * p[:, 0] - 0.002 * p[:, 1], True),
+    for field, interior_only in ((env, False), (lambda p: env(p) - 0.002 * p[:, 1], True),
                                  (lambda p: np.full(len(p), 290.0), True)):
         sim, st = smoothing_sim(field)
         sim.step(1)

@@ -225,26 +225,7 @@ struct PositionCorrection {
             for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
                 float mb = boundary.pos[b].w;
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
-                // s_corr against wall particles too, so that a lattice at rest next to a wall feels no net push
-                float s = 0.0f;
-                if (cp.scorr_k_lambda > 0.0f && !vel) {
-                    float ratio;
-                    if (Adaptive) {
-                        float hm = cp.scorr_dq * 0.5f * (hi + cp.h0);
-                        float wdq = poly6_sym(hm * hm, hi, cp.h0);
-                        ratio = wdq > 0.0f ? poly6_sym(r2, hi, cp.h0) / wdq : 0.0f;
-                    } else {
-                        ratio = poly6(r2, hi) * cp.scorr_inv_wdq;
-                    }
-                    float q = ratio;
-                    for (int k = 1; k < cp.scorr_n; ++k) q *= ratio;
-                    s = -cp.scorr_k_lambda * q * mb / mi;
-                    if (Adaptive) {
-                        float e = 0.5f * (hi + cp.h0) / cp.h0;
-                        s *= e * e * e * e * e;
-                    }
-                }
-                dp += (li * mb / mi + s) * gw;
+                dp += (li * mb / mi) * gw;
             });
         }
         if (vel) {
