@@ -212,7 +212,8 @@ def test_internal_gravity_wave_frequency(backend):
 
 
 def test_ground_heating_follows_the_noise_pattern():
-    scene = small_cloud_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
+    # scorr_k = 0: next to a wall a lattice settles a little under s_corr, which the adiabatic term would add
+    scene = small_cloud_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0, "pbf.scorr_k": 0.0,
                                  "smoothing.kappa": 0.0, "particles.max_speed": 0.0, "time.dt": 1.0})
     a = scene.atmosphere
     sim = Simulation(scene, backend="cpu")

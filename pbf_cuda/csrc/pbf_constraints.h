@@ -45,16 +45,13 @@ struct DensityLambda {
     LevelRadii radii;
     ConstraintParams cp;
     float* lambda;
-    float* density;         // nullptr: velocity mode (vel given), density not written
-    const Float4* vel;      // non-null: lambda of the divergence constraint D_i = J_i v (velocity projection)
+    float* density;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
         float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
-        Vec3 vi = vel ? xyz(vel[i]) : Vec3{0, 0, 0};
         float rho = 0.0f;
-        float div = 0.0f;        // rho0 D_i (velocity mode)
         Vec3 grad_i{0, 0, 0};
         float sum_grad2 = 0.0f;  // sum_j |grad_j C_i|^2 / m_j
         for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
@@ -66,7 +63,6 @@ struct DensityLambda {
                 Vec3 gj = (mj * cp.inv_rest_density) * gw;
                 grad_i += gj;
                 sum_grad2 += dot(gj, gj) / mj;
-                if (vel) div += mj * dot(vi - xyz(vel[j]), gw);
             }
         });
         if (boundary.start && near_wall(grid, xi, cp.h0)) {
@@ -75,19 +71,13 @@ struct DensityLambda {
                 rho += mb * (Adaptive ? poly6_sym(r2, hi, cp.h0) : poly6(r2, hi));
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
                 grad_i += (mb * cp.inv_rest_density) * gw;
-                if (vel) div += mb * dot(vi, gw);   // walls are at rest
             });
         }
-        float c;
-        if (vel) {
-            c = div * cp.inv_rest_density;      // D_i, 1/s
-        } else {
-            c = rho * cp.inv_rest_density - 1.0f;
-            if (cp.unilateral && c < 0.0f) c = 0.0f;
-        }
+        float c = rho * cp.inv_rest_density - 1.0f;
+        if (cp.unilateral && c < 0.0f) c = 0.0f;
         float denom = dot(grad_i, grad_i) / mi + sum_grad2 + cp.relaxation;
         lambda[i] = denom > 0.0f ? -c / denom : 0.0f;
-        if (density) density[i] = rho;
+        density[i] = rho;
     }
 };
 
@@ -183,8 +173,6 @@ struct PositionCorrection {
     ConstraintParams cp;
     const float* lambda;
     Float4* pos_out;
-    const Float4* vel;      // non-null: velocity mode, writes v_i + dv_i into vel_out (no wall clamp)
-    Float4* vel_out;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
@@ -197,7 +185,7 @@ struct PositionCorrection {
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
             float s = 0.0f;
-            if (cp.scorr_k_lambda > 0.0f && !vel) {
+            if (cp.scorr_k_lambda > 0.0f) {
                 // W(r) / W(dq h) with the pair's own kernel (eq. 19) at dq times the pair's mean radius, so a fine
                 // pair at its own spacing feels what a level-0 pair does at its spacing.
                 float ratio;
@@ -227,11 +215,6 @@ struct PositionCorrection {
                 Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
                 dp += (li * mb / mi) * gw;
             });
-        }
-        if (vel) {
-            Float4 v = vel[i];
-            vel_out[i] = make_float4(xyz(v) + cp.inv_rest_density * dp, v.w);
-            return;
         }
         Vec3 x = xi + cp.inv_rest_density * dp;
         // Collision with the walls: keep the particle inside the box on wall axes.

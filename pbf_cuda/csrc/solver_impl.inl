@@ -747,9 +747,8 @@ private:
     void solve_density(const CellRanges& bnd) {
         for (int it = 0; it < p_.iterations; ++it) {
             CellRanges fl = fluid_ranges(pred_);
-            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_), nullptr});
-            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_),
-                                                          nullptr, nullptr});
+            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_)});
+            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_)});
             pred_.swap(pos_tmp_);
         }
     }
@@ -788,9 +787,7 @@ private:
                                                  thrust::plus<double>());
             return rr <= tol2;
         };
-        last_projection_iterations_ = 0;
         for (int it = 0; it < p_.divergence_iterations && rz > 0.0 && !converged(); ++it) {
-            last_projection_iterations_ = it + 1;
             parallel_for(n, ApplyJT<Adaptive>{grid_, fl, bnd, radii_, cp_, p, g});           // g = M^-1 J^T p
             parallel_for(n, ApplyJ<Adaptive>{grid_, fl, bnd, radii_, cp_, g, q, nullptr});   // q = A p
             double pq = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
@@ -1065,8 +1062,7 @@ private:
     dvec<uint32_t> id_, uint_tmp_, keys_, perm_, cell_start_, cell_end_;
     dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
     dvec<float> cg_r_, cg_p_, cg_q_, cg_diag_;   // velocity projection (conjugate gradients)
-    dvec<float> cg_mu_;
-    int last_projection_iterations_ = 0;                         // its solution, kept per particle for the next step's warm start
+    dvec<float> cg_mu_;                         // its solution, kept per particle for the next step's warm start
     dvec<uint8_t> flags_;
     dvec<float> energy_;
     dvec<uint32_t> split_count_, split_slot_, split_candidates_, merge_partner_;
