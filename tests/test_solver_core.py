@@ -137,6 +137,20 @@ def test_nan_is_caught_at_its_step_with_the_particle(backend):
     assert "NaN" in str(err.value)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("field, value, named", [("temperature", np.nan, "temperature"), ("vapor", np.inf, "vapor"),
+                                                 ("cloud", np.nan, "cloud")])
+def test_bad_thermodynamic_state_is_caught_and_named(backend, field, value, named):
+    scene = load_scene("growing", **{"domain.size": [800.0, 800.0, 800.0], "particles.spacing": 100.0})
+    st = Simulation(scene, backend=backend).state()
+    st[field][5] = value
+    bad_id = int(st["id"][5])
+    with pytest.raises(InstabilityError) as err:
+        Simulation.from_arrays(scene, st, backend=backend).step(3)
+    assert err.value.step == 1 and bad_id in err.value.particles
+    assert named in err.value.reason
+
+
 @pytest.mark.parametrize("field, value, expect", [
     ("pbf.iterations", 0, "pbf.iterations = 0 is out of range: allowed [1, 200]"),
     ("domain.boundary", ["periodic", "wall", "open"], "domain.boundary"),

@@ -22,6 +22,16 @@ int cuda_device_capability() {
     return prop.major * 10 + prop.minor;
 }
 
+// Free and total memory of device 0 in bytes ({0, 0} without a device).
+std::pair<std::size_t, std::size_t> cuda_memory_info() {
+    std::size_t free_b = 0, total_b = 0;
+    if (cuda_device_count() == 0 || cudaMemGetInfo(&free_b, &total_b) != cudaSuccess) {
+        cudaGetLastError();
+        return {0, 0};
+    }
+    return {free_b, total_b};
+}
+
 std::string cuda_device_name() {
     cudaDeviceProp prop;
     if (cuda_device_count() == 0 || cudaGetDeviceProperties(&prop, 0) != cudaSuccess) return "";

@@ -312,6 +312,10 @@ NB_MODULE(_core, m) {
         return -1;
 #endif
     });
+#ifdef PBF_WITH_CUDA
+    // (free, total) bytes of device 0: the memory check before a run (pbf_cuda/memory.py).
+    m.def("cuda_memory_info", []() { return pbf::cuda_memory_info(); });
+#endif
     m.def("cuda_device_name", []() {
 #ifdef PBF_WITH_CUDA
         return pbf::cuda_device_name();

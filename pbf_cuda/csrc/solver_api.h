@@ -1,6 +1,7 @@
 // The boundary between the Python bindings (g++) and the two backends (nvcc / g++ + OpenMP).
 // Only plain types and raw pointers cross it; each backend keeps its Thrust containers inside.
 #pragma once
+#include <utility>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -111,6 +112,7 @@ std::unique_ptr<ISolver> make_cpu_solver(const Params& p);
 std::unique_ptr<ISolver> make_cuda_solver(const Params& p);
 int cuda_device_count();
 std::string cuda_device_name();
+std::pair<std::size_t, std::size_t> cuda_memory_info();
 #endif
 
 }  // namespace pbf

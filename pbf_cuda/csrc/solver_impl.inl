@@ -233,8 +233,13 @@ struct Reduced {
     float err_sum, err_max, speed2_max;
     float excess_sum, deficit_sum;  // sum max(C, 0), sum max(-C, 0): the two sides of the density error
     uint32_t bad;
+    uint32_t why;   // OR of the BadKind bits of the bad particles
     float lo[3], hi[3];
 };
+
+// Which check a particle failed (ParticleCheck::kinds), named in the instability message.
+enum BadKind : uint32_t { kBadPosition = 1, kBadVelocity = 2, kBadSpeed = 4, kBadTemperature = 8, kBadVapor = 16,
+                          kBadCloud = 32 };
 
 struct ReduceOp {
     PBF_HD Reduced operator()(const Reduced& a, const Reduced& b) const {
@@ -245,6 +250,7 @@ struct ReduceOp {
         r.err_max = fmaxf(a.err_max, b.err_max);
         r.speed2_max = fmaxf(a.speed2_max, b.speed2_max);
         r.bad = a.bad + b.bad;
+        r.why = a.why | b.why;
         for (int k = 0; k < 3; ++k) { r.lo[k] = fminf(a.lo[k], b.lo[k]); r.hi[k] = fmaxf(a.hi[k], b.hi[k]); }
         return r;
     }
@@ -255,16 +261,28 @@ struct ParticleCheck {
     const Float4* vel;
     const float* density;
     const float* temperature;  // nullptr without thermodynamics
+    const float* vapor;
+    const float* cloud;
     float inv_rest_density;
     bool unilateral;
     float max_speed2;
-    PBF_HD bool is_bad(uint32_t i) const {
+    // BadKind bits of particle i (0: it passes): non-finite position, velocity or thermodynamic field
+    // (a vapor or cloud value below zero counts too), or a speed above max_velocity.
+    PBF_HD uint32_t kinds(uint32_t i) const {
         Vec3 x = xyz(pos[i]), v = xyz(vel[i]);
         float s2 = dot(v, v);
-        bool ok = finite3(x) && finite3(v) && isfinite(s2) && s2 <= max_speed2;
-        if (temperature) ok = ok && isfinite(temperature[i]);
-        return !ok;
+        uint32_t k = 0;
+        if (!finite3(x)) k |= kBadPosition;
+        if (!finite3(v)) k |= kBadVelocity;
+        else if (!(isfinite(s2) && s2 <= max_speed2)) k |= kBadSpeed;
+        if (temperature) {
+            if (!isfinite(temperature[i])) k |= kBadTemperature;
+            if (!(isfinite(vapor[i]) && vapor[i] >= 0.0f)) k |= kBadVapor;
+            if (!(isfinite(cloud[i]) && cloud[i] >= 0.0f)) k |= kBadCloud;
+        }
+        return k;
     }
+    PBF_HD bool is_bad(uint32_t i) const { return kinds(i) != 0; }
     PBF_HD Reduced operator()(uint32_t i) const {
         Reduced r;
         float c = density[i] * inv_rest_density - 1.0f;
@@ -275,7 +293,8 @@ struct ParticleCheck {
         r.excess_sum = fmaxf(c, 0.0f);
         r.deficit_sum = fmaxf(-c, 0.0f);
         r.speed2_max = dot(v, v);
-        r.bad = is_bad(i) ? 1u : 0u;
+        r.why = kinds(i);
+        r.bad = r.why ? 1u : 0u;
         r.lo[0] = r.hi[0] = x.x;
         r.lo[1] = r.hi[1] = x.y;
         r.lo[2] = r.hi[2] = x.z;
@@ -998,13 +1017,15 @@ private:
     // ---- stability checks ----
     ParticleCheck make_check() {
         float vmax = p_.max_velocity;
-        return ParticleCheck{raw(pos_), raw(vel_), raw(density_), p_.thermodynamics ? raw(temperature_) : nullptr,
-                             cp_.inv_rest_density, p_.unilateral, vmax * vmax};
+        const bool t = p_.thermodynamics;
+        return ParticleCheck{raw(pos_), raw(vel_), raw(density_), t ? raw(temperature_) : nullptr,
+                             t ? raw(vapor_) : nullptr, t ? raw(cloud_) : nullptr, cp_.inv_rest_density,
+                             p_.unilateral, vmax * vmax};
     }
 
     Reduced reduce_checks() {
         Reduced init;
-        init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.speed2_max = 0.0f; init.bad = 0;
+        init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.why = 0; init.speed2_max = 0.0f; init.bad = 0;
         for (int k = 0; k < 3; ++k) { init.lo[k] = INFINITY; init.hi[k] = -INFINITY; }
         return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
                                         thrust::counting_iterator<uint32_t>(uint32_t(n_)), make_check(), init,
@@ -1017,8 +1038,14 @@ private:
         double mean_err = double(r.err_sum) / double(n_);
         std::string reason;
         if (r.bad > 0) {
-            reason = std::to_string(r.bad) + " particle(s) with NaN/Inf or speed above max_velocity = " +
-                     std::to_string(p_.max_velocity) + " m/s";
+            static const char* names[6] = {"NaN/Inf position", "NaN/Inf velocity", "speed above max_velocity",
+                                           "NaN/Inf temperature", "NaN/Inf or negative vapor",
+                                           "NaN/Inf or negative cloud"};
+            std::string what;
+            for (int k = 0; k < 6; ++k)
+                if (r.why & (1u << k)) what += (what.empty() ? "" : ", ") + std::string(names[k]);
+            reason = std::to_string(r.bad) + " particle(s) with " + what + " (max_velocity = " +
+                     std::to_string(p_.max_velocity) + " m/s)";
         } else if (!(mean_err <= p_.max_density_error)) {
             reason = "mean density error " + std::to_string(mean_err) + " above max_density_error = " +
                      std::to_string(p_.max_density_error);
