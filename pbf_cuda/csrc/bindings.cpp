@@ -314,7 +314,10 @@ NB_MODULE(_core, m) {
     });
 #ifdef PBF_WITH_CUDA
     // (free, total) bytes of device 0: the memory check before a run (pbf_cuda/memory.py).
-    m.def("cuda_memory_info", []() { return pbf::cuda_memory_info(); });
+    m.def("cuda_memory_info", []() {
+        auto info = pbf::cuda_memory_info();
+        return std::make_tuple(info.first, info.second);
+    });
 #endif
     m.def("cuda_device_name", []() {
 #ifdef PBF_WITH_CUDA
