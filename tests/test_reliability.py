@@ -232,7 +232,13 @@ def test_extends_cycle_through_two_files_and_allowed_extends(tmp_path):
 
 
 # ==== sizes and memory ===============================================================================
-def test_sizes_that_cannot_fit_are_refused_before_allocation():
+def test_sizes_that_cannot_fit_are_refused_before_allocation(monkeypatch):
+    # The same answer on every machine: 24 GiB of host memory and 1 GiB of GPU memory available.
+    import pbf_cuda.memory as memory
+    monkeypatch.setattr(memory, "available_memory",
+                        lambda backend: (1 if backend == "cuda" else 24) * 2**30)
+    with pytest.raises(SceneError, match=r"GiB of GPU memory, 1\.00 GiB free"):
+        check_memory(load_scene("growing").with_particle_count(50_000_000), "cuda")
     with pytest.raises(SceneError, match=r"1,000,000,000 fluid particles.*GiB of host memory"):
         check_memory(load_scene("rest_box").with_particle_count(10**9), "cpu")
     with pytest.raises(SceneError, match=r"125,000,000,000 particles .* exceed the solver's limit"):
