@@ -87,15 +87,16 @@ def taylor_green(p, speed=0.1, k=2 * math.pi):
     return u
 
 
-@pytest.mark.parametrize("speed", [0.1])
+@pytest.mark.parametrize("speed", [0.01, 0.1])
 def test_shear_wave_decays_at_the_rate_its_viscosity_implies(speed):
-    # u = U sin(k y) x: du/dt = nu lap u = -nu k^2 u, so KE ~ exp(-2 nu k^2 t), at any amplitude.
-    nu, k, steps = 2e-3, 2 * math.pi, 100                # nu dt / d^2 = 0.02 (explicit-stable)
+    # u = U sin(k y) x: du/dt = nu lap u = -nu k^2 u, so KE ~ exp(-2 nu k^2 t), at any amplitude. The rate is
+    # fitted after the first 20 steps (0.2 s), in which the projection adjusts the sampled field.
+    nu, k, steps = 2e-3, 2 * math.pi, 150                # nu dt / d^2 = 0.02 (explicit-stable)
     sim = with_velocity(periodic_box(nu), lambda p: shear_wave(p, speed, k))
     ke0 = initial_kinetic_energy(sim)
     ke = kinetic_energy_series(sim, steps)
     t = sim.scene.time.dt * np.arange(1, steps + 1)
-    rate = -np.polyfit(t, np.log(ke / ke0), 1)[0]
+    rate = -np.polyfit(t[20:], np.log(ke[20:] / ke0), 1)[0]
     assert rate == pytest.approx(2 * nu * k * k, rel=0.10)
     st = sim.state()
     momentum = (st["mass"][:, None].astype(np.float64) * st["velocity"]).sum(axis=0)
