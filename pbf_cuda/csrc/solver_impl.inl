@@ -658,6 +658,19 @@ public:
 
     StepStats stats() override {
         StepStats s = last_stats_;
+        if (!s.budget.valid && n_ > 0) {
+            // Before the first step: the state's totals, and no heat from any process yet.
+            BudgetSums now = reduce_budget(pos_, true, false);
+            StepBudget& b = s.budget;
+            b.valid = true;
+            double M = now.m > 0 ? now.m : 1.0;
+            b.mass = now.m;
+            b.mass_centre_height = now.my / M;
+            b.kinetic_energy = now.ke;
+            b.potential_energy = now.ape;
+            b.mean_temperature = now.mT / M;
+            b.total_water = now.mq;
+        }
         s.step = step_;
         s.time = time_;
         s.n_particles = n_;
