@@ -104,11 +104,107 @@ PBF_INLINE Vec3 wrap_position(const GridGeometry& g, Vec3 p) {
 }
 
 // A sorted particle set with its cell ranges, as seen from kernels (raw pointers only).
+// Adaptive runs also carry nested sub-cells (below): every cell split 2 x 2 x 2, with per-cell and
+// per-sub-cell largest kernel radius; uniform runs leave those pointers null.
 struct CellRanges {
     const Float4* pos;        // sorted positions (w = mass)
     const uint32_t* start;    // per cell: first index
     const uint32_t* end;      // per cell: one past the last index (start == end: empty)
+    const uint32_t* sub_start = nullptr;  // per sub-cell (cell * 8 + sub): first index
+    const uint32_t* sub_end = nullptr;    // per sub-cell: one past the last index
+    const float* sub_radius = nullptr;    // per sub-cell: largest kernel radius of its particles (m), 0 if empty
+    const float* cell_radius = nullptr;   // per cell: largest kernel radius of its particles (m), 0 if empty
+    const uint32_t* key = nullptr;        // per particle: its nested key as sorted
 };
+
+// ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------
+// A cell of side >= h0 (the level-0 radius) is split into 2 x 2 x 2 sub-cells of side >= h0 / 2, the finest
+// radius of three levels (h_3 = h0 / 2). Particles are sorted by the nested key cell * 8 + sub, so each
+// cell's particles stay one contiguous range (everything that works per cell, such as merging, is unchanged)
+// and each sub-cell's particles are a range inside it. A pair (i, j) interacts where |x_ij| < max(h_i, h_j)
+// (the support of the symmetric kernel of eq. 19), so particle i needs only the sub-cells closer to its own
+// than the larger of the two sub-cells' largest radii: a fine particle amid fine ones scans the 3 x 3 x 3
+// sub-cells its own support needs (as a uniform run at that spacing does), not the level-0 volume, 8x larger.
+constexpr uint32_t kSubCells = 8;
+
+PBF_INLINE uint32_t sub_cell_of(const GridGeometry& g, Vec3 p) {
+    uint32_t sub = 0;
+    for (int a = 0; a < 3; ++a) {
+        float t = (component(p, a) - g.origin[a]) * g.inv_cell[a];
+        if (!(t > -1e9f && t < 1e9f)) t = 0.0f;
+        float frac = t - floorf(t);
+        uint32_t s = frac >= 0.5f ? 1u : 0u;
+        // Clamped positions beyond a wall belong to the nearest sub-cell of the edge cell.
+        if (!g.periodic[a]) {
+            if (t < 0.0f) s = 0u;
+            else if (t >= float(g.dims[a])) s = 1u;
+        }
+        sub |= s << a;
+    }
+    return sub;
+}
+
+PBF_INLINE uint32_t nested_key(const GridGeometry& g, Vec3 p) { return cell_key(g, p) * kSubCells + sub_cell_of(g, p); }
+
+// Calls f(j, r, r2) for every particle j of `set` (with nested ranges) whose sub-cell lies closer to particle
+// i's sub-cell than max(largest radius in i's sub-cell, largest radius in j's sub-cell), with r = x_i - x_j
+// (minimum image) and r2 < that radius squared: a superset of the pairs with |r| < max(h_i, h_j). The test
+// reads only the sub-cells as sorted (i's own from its sort key), never the positions that moved since, so it
+// is symmetric: j is visited from i exactly when i is visited from j, and pair forces stay equal and opposite.
+template <class F>
+PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q,
+                                            F&& f) {
+    const uint32_t key = set.key[i];
+    uint32_t c[3];
+    cell_coords(g, key / kSubCells, c);
+    const uint32_t si = key % kSubCells;
+    const int sub_i[3] = {int(si & 1u), int((si >> 1) & 1u), int(si >> 2)};
+    const float hs_i = set.sub_radius[key];
+    // Squared gap (m^2) along axis a between i's sub-cell and the sub-cells (s = 0, 1) of the cell at offset d:
+    // |o| - 1 whole sub-cells lie between them, o = 2 d + s - s_i.
+    auto gap2 = [&](int a, int d, int s) {
+        int o = 2 * d + s - sub_i[a];
+        o = o < 0 ? -o : o;
+        float e = o > 1 ? float(o - 1) * 0.5f * g.cell[a] : 0.0f;
+        return e * e;
+    };
+    for (int dz = -1; dz <= 1; ++dz) {
+        int cz = int(c[2]) + dz;
+        if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
+        else if (cz < 0 || cz >= g.dims[2]) continue;
+        float ez = fminf(gap2(2, dz, 0), gap2(2, dz, 1));
+        for (int dy = -1; dy <= 1; ++dy) {
+            int cy = int(c[1]) + dy;
+            if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
+            else if (cy < 0 || cy >= g.dims[1]) continue;
+            float ey = ez + fminf(gap2(1, dy, 0), gap2(1, dy, 1));
+            for (int dx = -1; dx <= 1; ++dx) {
+                int cx = int(c[0]) + dx;
+                if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
+                else if (cx < 0 || cx >= g.dims[0]) continue;
+                uint32_t cell = cell_index(g, cx, cy, cz);
+                float hc = fmaxf(hs_i, set.cell_radius[cell]);
+                if (ey + fminf(gap2(0, dx, 0), gap2(0, dx, 1)) >= hc * hc) continue;  // also every empty cell
+                for (uint32_t s = 0; s < kSubCells; ++s) {
+                    uint32_t sc = cell * kSubCells + s;
+                    uint32_t b = set.sub_start[sc], en = set.sub_end[sc];
+                    if (b == en) continue;
+                    float hs = fmaxf(hs_i, set.sub_radius[sc]);
+                    float rs2 = hs * hs;
+                    float es = gap2(0, dx, int(s & 1u)) + gap2(1, dy, int((s >> 1) & 1u)) + gap2(2, dz, int(s >> 2));
+                    if (es >= rs2) continue;
+                    for (uint32_t j = b; j < en; ++j) {
+                        Float4 pj = set.pos[j];
+                        Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+                        float r2 = dot(r, r);
+                        if (r2 < rs2) f(j, r, r2);
+                    }
+                }
+            }
+        }
+    }
+}
+
 
 // Calls f(j, r, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c with
 // |r| < r_max, r = q - x_j (minimum image). Whole cells whose box lies r_max or farther from q are
@@ -186,6 +282,15 @@ PBF_HD inline void for_each_neighbor_strided(const GridGeometry& g, const CellRa
                                              float slack, uint32_t first, uint32_t stride, F&& f) {
     int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
     for_each_in_block_strided(g, set, c, xi, r_max, slack, first, stride, f);
+}
+
+// The fluid-fluid neighbour loop of every adaptive-aware phase for particle i of `set` at q: the nested search
+// for adaptive runs, the plain 27-cell search with radius h0 for uniform ones.
+template <bool Adaptive, class F>
+PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q, float h0,
+                                           F&& f) {
+    if constexpr (Adaptive) for_each_neighbor_nested(g, set, i, q, f);
+    else for_each_neighbor(g, set, q, h0, f);
 }
 
 }  // namespace pbf

@@ -54,7 +54,7 @@ struct DensityLambda {
         float rho = 0.0f;
         Vec3 grad_i{0, 0, 0};
         float sum_grad2 = 0.0f;  // sum_j |grad_j C_i|^2 / m_j
-        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
             rho += mj * (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi));
@@ -100,7 +100,7 @@ struct ApplyJT {
         float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
         float li = p[i];
         Vec3 dv{0, 0, 0};
-        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
@@ -137,7 +137,7 @@ struct ApplyJ {
         float div = 0.0f;
         Vec3 grad_i{0, 0, 0};
         float sum_grad2 = 0.0f;
-        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
@@ -180,7 +180,7 @@ struct PositionCorrection {
         float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
         float li = lambda[i];
         Vec3 dp{0, 0, 0};
-        for_each_neighbor(grid, fluid, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
@@ -257,7 +257,7 @@ struct ViscosityVorticity {
         Vec3 visc{0, 0, 0};
         Vec3 lap{0, 0, 0};
         Vec3 w{0, 0, 0};
-        for_each_neighbor(grid, fluid, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : h0;
@@ -294,7 +294,7 @@ struct VorticityConfinement {
         float hi = Adaptive ? radii.radius_of_mass(pi.w) : h0;
         float wi = omega[i].w;
         Vec3 eta{0, 0, 0};
-        for_each_neighbor(grid, fluid, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : h0;

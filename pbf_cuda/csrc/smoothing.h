@@ -45,7 +45,7 @@ struct SmoothScalars {
         float beta_i = Adaptive ? beta0 * (hi * hi) / (h0 * h0) : beta0;
         float vi[3], dT[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) vi[k] = f.in[k] ? f.in[k][i] : 0.0f;
-        for_each_neighbor(grid, fluid, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
             if (j == i) return;
             float mj = fluid.pos[j].w;
             float hj = Adaptive ? radii.radius_of_mass(mj) : h0;

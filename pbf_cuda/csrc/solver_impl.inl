@@ -189,11 +189,16 @@ struct Predict {
     }
 };
 
+// Sort key of particle i: its cell (uniform runs) or its nested sub-cell cell * 8 + sub (adaptive runs, grid.h).
 struct ComputeKeys {
     GridGeometry g;
     const Float4* pos;
     uint32_t* keys;
-    PBF_HD void operator()(uint32_t i) const { keys[i] = cell_key(g, xyz(pos[i])); }
+    bool nested;
+    PBF_HD void operator()(uint32_t i) const {
+        Vec3 x = xyz(pos[i]);
+        keys[i] = nested ? nested_key(g, x) : cell_key(g, x);
+    }
 };
 
 struct MarkCellRanges {
@@ -205,6 +210,45 @@ struct MarkCellRanges {
         uint32_t k = keys[i];
         if (i == 0 || keys[i - 1] != k) start[k] = i;
         if (i == n - 1 || keys[i + 1] != k) end[k] = i + 1;
+    }
+};
+
+// Largest kernel radius per sub-cell (adaptive runs): thread s scans sub-cell s's range.
+struct SubCellRadius {
+    LevelRadii radii;
+    const Float4* pos;
+    const uint32_t* start;
+    const uint32_t* end;
+    float* radius;
+    PBF_HD void operator()(uint32_t s) const {
+        float h = 0.0f;
+        for (uint32_t j = start[s]; j < end[s]; ++j) h = fmaxf(h, radii.radius_of_mass(pos[j].w));
+        radius[s] = h;
+    }
+};
+
+// Per cell: the cell's particle range and largest radius from its eight sub-cells.
+struct CellFromSubCells {
+    const uint32_t* sub_start;
+    const uint32_t* sub_end;
+    const float* sub_radius;
+    uint32_t* start;
+    uint32_t* end;
+    float* radius;
+    PBF_HD void operator()(uint32_t c) const {
+        uint32_t b = 0, e = 0;
+        float h = 0.0f;
+        bool any = false;
+        for (uint32_t s = c * kSubCells; s < (c + 1) * kSubCells; ++s) {
+            if (sub_start[s] == sub_end[s]) continue;
+            if (!any) b = sub_start[s];
+            e = sub_end[s];
+            any = true;
+            h = fmaxf(h, sub_radius[s]);
+        }
+        start[c] = b;
+        end[c] = e;
+        radius[c] = h;
     }
 };
 
@@ -316,7 +360,7 @@ struct MergePassBit {
     PBF_HD uint32_t operator()(uint32_t i) const {
         if (partner[i] == 0xffffffffu) return 0u;
         uint32_t c[3];
-        cell_coords(g, keys[i], c);
+        cell_coords(g, keys[i] / kSubCells, c);  // adaptive runs sort by nested keys (grid.h)
         return 1u << ((c[0] % 3) + 3 * (c[1] % 3) + 9 * (c[2] % 3));
     }
 };
@@ -510,6 +554,12 @@ public:
                      (p_.smooth_fields[0] || p_.smooth_fields[1] || p_.smooth_fields[2]);
         cell_start_.resize(grid_.num_cells());
         cell_end_.resize(grid_.num_cells());
+        if (p_.adaptive) {
+            sub_start_.resize(std::size_t(grid_.num_cells()) * kSubCells);
+            sub_end_.resize(std::size_t(grid_.num_cells()) * kSubCells);
+            sub_radius_.resize(std::size_t(grid_.num_cells()) * kSubCells);
+            cell_radius_.resize(grid_.num_cells());
+        }
     }
 
     // -- set-up ------------------------------------------------------------------------------
@@ -726,6 +776,9 @@ private:
     }
 
     CellRanges fluid_ranges(const dvec<Float4>& positions) const {
+        if (p_.adaptive)
+            return CellRanges{raw(positions), raw(cell_start_), raw(cell_end_), raw(sub_start_), raw(sub_end_),
+                              raw(sub_radius_), raw(cell_radius_), raw(keys_)};
         return CellRanges{raw(positions), raw(cell_start_), raw(cell_end_)};
     }
     CellRanges boundary_ranges() const {
@@ -754,13 +807,25 @@ private:
     }
 
     void build_neighbor_grid() {
-        parallel_for(n_, ComputeKeys{grid_, raw(pred_), raw(keys_)});
+        const bool nested = p_.adaptive;
+        parallel_for(n_, ComputeKeys{grid_, raw(pred_), raw(keys_), nested});
         thrust::sequence(thrust::device, perm_.begin(), perm_.begin() + n_);
         thrust::sort_by_key(thrust::device, keys_.begin(), keys_.begin() + n_, perm_.begin());
         permute_all(true);
-        thrust::fill(thrust::device, cell_start_.begin(), cell_start_.end(), 0u);
-        thrust::fill(thrust::device, cell_end_.begin(), cell_end_.end(), 0u);
-        parallel_for(n_, MarkCellRanges{raw(keys_), uint32_t(n_), raw(cell_start_), raw(cell_end_)});
+        if (!nested) {
+            thrust::fill(thrust::device, cell_start_.begin(), cell_start_.end(), 0u);
+            thrust::fill(thrust::device, cell_end_.begin(), cell_end_.end(), 0u);
+            parallel_for(n_, MarkCellRanges{raw(keys_), uint32_t(n_), raw(cell_start_), raw(cell_end_)});
+            return;
+        }
+        // Adaptive: sub-cell ranges from the nested keys, then each cell's range and largest radius from them.
+        thrust::fill(thrust::device, sub_start_.begin(), sub_start_.end(), 0u);
+        thrust::fill(thrust::device, sub_end_.begin(), sub_end_.end(), 0u);
+        parallel_for(n_, MarkCellRanges{raw(keys_), uint32_t(n_), raw(sub_start_), raw(sub_end_)});
+        parallel_for(sub_start_.size(), SubCellRadius{radii_, raw(pred_), raw(sub_start_), raw(sub_end_),
+                                                      raw(sub_radius_)});
+        parallel_for(cell_start_.size(), CellFromSubCells{raw(sub_start_), raw(sub_end_), raw(sub_radius_),
+                                                          raw(cell_start_), raw(cell_end_), raw(cell_radius_)});
     }
 
     BudgetSums reduce_budget(const dvec<Float4>& positions, bool with_vel, bool with_heating) const {
@@ -1100,6 +1165,8 @@ private:
 
     dvec<Float4> pos_, pred_, pos_tmp_, vel_, vel_tmp_, omega_;
     dvec<uint32_t> id_, uint_tmp_, keys_, perm_, cell_start_, cell_end_;
+    dvec<uint32_t> sub_start_, sub_end_;   // adaptive runs: nested sub-cell ranges (grid.h)
+    dvec<float> sub_radius_, cell_radius_; // adaptive runs: largest kernel radius per sub-cell and per cell
     dvec<float> lambda_, density_, float_tmp_, temperature_, vapor_, cloud_, smooth_out_[3];
     dvec<float> cg_r_, cg_p_, cg_q_, cg_diag_;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu_;                         // its solution, kept per particle for the next step's warm start
