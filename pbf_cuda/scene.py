@@ -42,6 +42,7 @@ BOUNDARY_KINDS = ("periodic", "wall")
 SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
 VAPOR_PROFILES = ("relative", "uniform")
 PROJECTIONS = ("position", "velocity")
+REFINEMENT_CRITERIA = ("paper", "lookahead")
 
 
 class SceneError(ValueError):
@@ -178,6 +179,11 @@ class Adaptive:
     k_c: float = _spec(2000.0, 0.0, 1e9, "1/(kg/kg)", "k_c of eq. 20")
     split_threshold: float = _spec(0.3, 0.0, 1e9, "", "split when E > this (alpha)")
     merge_threshold: float = _spec(0.05, 0.0, 1e9, "", "merge when E < this (beta)")
+    criterion: str = _spec("paper", choices=REFINEMENT_CRITERIA,
+                           doc="what E of eq. 20 measures: 'paper': the cloud water w; 'lookahead': the cloud water "
+                               "the particle would hold after rising lookahead_height dry-adiabatically, "
+                               "max(w, v + w - q_s(T - Gamma_d dz)), so thermals are refined before they condense")
+    lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
     min_distance: float = _spec(0.35, 0.0, 0.5, "",
                                 "no particle within this times the new particle's kernel radius of it; at most "

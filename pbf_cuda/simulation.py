@@ -151,6 +151,7 @@ def build_params(scene: Scene, capacity: int):
     p.split_threshold = ad.split_threshold
     p.merge_threshold = ad.merge_threshold
     p.min_distance = ad.min_distance
+    p.lookahead_height = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
     p.capacity = capacity
     return p
 

@@ -33,6 +33,7 @@
 #include "common.h"
 #include "grid.h"
 #include "kernels.h"
+#include "thermodynamics.h"
 
 namespace pbf {
 
@@ -45,18 +46,33 @@ struct AdaptParams {
     float h0;
     float spacing[kMaxLevels];  // lattice spacing of each level, m
     float conflict_radius;      // m
+    float lookahead_height;     // m; 0: the paper's criterion
 };
 
-// Shape energy (eq. 20) and candidate marks.
+// Shape energy (eq. 20) and candidate marks. The refinement criterion decides what water E measures:
+//   paper      E = k_p (1 - exp(-k_c w))                                   (eq. 20)
+//   lookahead  E = k_p (1 - exp(-k_c w*)),  w* = max(w, v + w - q_s(T - Gamma_d dz))
+// w* is the cloud water of the particle lifted dz dry-adiabatically (eq. 7) and brought to saturation
+// (eq. 10, latent heat left out, which only lowers w*): air within dz of its condensation level is refined
+// before it condenses, so the thermals that build a cloud run at the fine resolution, not only the cloud.
+// Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
 struct MarkCandidates {
     AdaptParams ap;
+    AtmosphereParams atm;
     LevelRadii radii;
     const Float4* pos;
+    const float* temperature;
+    const float* vapor;
     const float* cloud;
     float* energy;
     uint8_t* flags;
     PBF_HD void operator()(uint32_t i) const {
-        float e = ap.k_p * (-expm1f(-ap.k_c * cloud[i]));  // E = k_p (1 - exp(-k_c w))
+        float w = cloud[i];
+        if (ap.lookahead_height > 0.0f) {
+            float lifted = temperature[i] - atm.dry_lapse_rate * ap.lookahead_height;
+            w = fmaxf(w, vapor[i] + cloud[i] - atm.saturation(lifted));
+        }
+        float e = ap.k_p * (-expm1f(-ap.k_c * w));  // E = k_p (1 - exp(-k_c w)), eq. 20
         energy[i] = e;
         int l = radii.level_of_mass(pos[i].w);
         uint8_t f = 0;

@@ -241,7 +241,7 @@ NB_MODULE(_core, m) {
     PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
     PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude);
     PBF_RW(kappa); PBF_RW(smoothing_epsilon); PBF_RW(adaptive); PBF_RW(max_level); PBF_RW(k_p); PBF_RW(k_c);
-    PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(capacity);
+    PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(lookahead_height); PBF_RW(capacity);
 #undef PBF_RW
 #define PBF_ARRAY(name, T, N)                                                                      \
     params.def_prop_rw(                                                                            \

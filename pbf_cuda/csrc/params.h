@@ -65,6 +65,7 @@ struct Params {
     float split_threshold = 1.0f;      // alpha
     float merge_threshold = 0.0f;      // beta
     float min_distance = 0.35f;        // too-close threshold, times the new particle's kernel radius
+    float lookahead_height = 0.0f;     // refinement criterion: 0 = the paper's eq. 20 on w; > 0 = look-ahead rise, m
     std::size_t capacity = 0;          // preallocated particle slots
 };
 

@@ -544,6 +544,7 @@ public:
         ap_.merge_threshold = p_.merge_threshold;
         ap_.max_level = p_.max_level < kMaxLevels - 1 ? p_.max_level : kMaxLevels - 2;
         ap_.min_distance = p_.min_distance;
+        ap_.lookahead_height = p_.thermodynamics ? p_.lookahead_height : 0.0f;
         ap_.h0 = p_.h0;
         for (int l = 0; l < kMaxLevels; ++l) ap_.spacing[l] = p_.spacing * std::pow(2.0f, -l / 3.0f);
         // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.
@@ -1012,7 +1013,8 @@ private:
         const bool thermo = p_.thermodynamics;
         // The grid built this step is still valid: positions only moved within their cells (wrapping).
         clock_.begin(kPhaseMerging);
-        parallel_for(n_, MarkCandidates{ap_, radii_, raw(pos_), raw(cloud_), raw(energy_), raw(flags_)});
+        parallel_for(n_, MarkCandidates{ap_, atm_, radii_, raw(pos_), raw(temperature_), raw(vapor_), raw(cloud_),
+                                        raw(energy_), raw(flags_)});
         CellRanges fl = fluid_ranges(pos_);
         parallel_for(n_, FindMergePartners{grid_, fl, radii_, raw(flags_), raw(merge_partner_)});
         clock_.begin(kPhaseMergePasses);
