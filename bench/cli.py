@@ -5,6 +5,7 @@
     cloudpbf table1                          the paper's Table 1, measured here
     cloudpbf compare growing                 particles (non-adaptive, adaptive) against the grid, >= 5 seeds
     cloudpbf sweep                           run time against error, Pareto front
+    cloudpbf adaptive-pareto                 adaptive variants against uniform runs, seed means, verdict
     cloudpbf stress                          stability map (dt, iterations, heating, alpha*dt)
     cloudpbf scaling                         ms per step against particle and cell counts
     cloudpbf report                          HTML report from OUT/data
@@ -374,6 +375,28 @@ def sweep(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: Scale
                .to_string(index=False))
     typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
     typer.echo(f"wrote {ctx.data / 'sweep.csv'}")
+
+
+@app.command("adaptive-pareto")
+def adaptive_pareto(
+    scene: Annotated[str, typer.Option(help="growing (the paper's example 1) or cumulus (one heated patch)")] = "growing",
+    seeds: Annotated[int, typer.Option(min=3, max=100, help="noise seeds per configuration (>= 3)")] = 3,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Adaptive variants against uniform runs at four spacings: seed-mean errors against a finer reference."""
+    from bench.studies.adaptive_pareto import SCENES, run_adaptive_pareto
+    if scene not in SCENES:
+        raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with _refusals():
+            result = run_adaptive_pareto(ctx, scene, seeds)
+    cols = ["config", "particles", "ms_per_step", "error", "error_seed_spread", "e_base", "e_top", "e_profile",
+            "speedup_at_equal_error"]
+    typer.echo(result["configs"][cols].to_string(index=False))
+    typer.echo(result["verdict"]["verdict"])
+    typer.echo(f"PBF cost per adaptive particle / per uniform particle: {result['verdict']['cost_ratio_per_particle']}")
 
 
 @app.command()

@@ -78,6 +78,7 @@ class Params:
     noise_frequency: float
     noise_amplitude: float
     noise_offset: tuple
+    heating_patch_radius: float
     initial_vapor_ratio: float
     vapor_profile: str
     vorticity: float
@@ -104,6 +105,7 @@ def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
         saturation_a=a.saturation_a, saturation_b=a.saturation_b, saturation_c=a.saturation_c,
         heating_rate=a.heating_rate, heating_depth=a.heating_depth, noise_frequency=a.noise_frequency,
         noise_amplitude=a.noise_amplitude, noise_offset=tuple(a.noise_offset),
+        heating_patch_radius=float(a.heating_patch_radius),
         initial_vapor_ratio=a.initial_vapor_ratio, vapor_profile=a.vapor_profile,
         vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
         cfl_target=float(cfl_target), max_substeps=int(max_substeps))
@@ -146,6 +148,9 @@ def make_aux(p: Params, dtype):
         pattern = np.asarray(heating_pattern(X, Z, p.noise_frequency, p.noise_amplitude, p.noise_offset,
                                              dtype=jnp.float64 if dtype == jnp.float64 else jnp.float32),
                              dtype=np.float64)
+        if p.heating_patch_radius > 0.0:   # one heated patch around the centre, as in the particle solver
+            q = 1.0 - ((X - 0.5 * p.size[0]) ** 2 + (Z - 0.5 * p.size[2]) ** 2) / p.heating_patch_radius ** 2
+            pattern = pattern * np.where(q > 0.0, q * q, 0.0)
     else:
         pattern = np.zeros_like(X)
     mask = (yc < p.heating_depth).astype(np.float64)

@@ -160,6 +160,9 @@ class Atmosphere:
     heating_depth: float = _spec(100.0, 0.0, 1e5, "m", "particles below this height are heated")
     noise_frequency: float = _spec(1.0 / 800.0, 0.0, 1e3, "1/m", "spatial frequency of the simplex heating pattern")
     noise_amplitude: float = _spec(1.0, 0.0, 10.0, "", "S = S_e * max(0, 1 + amplitude * noise(x f, z f))")
+    heating_patch_radius: float = _spec(0.0, 0.0, 1e6, "m",
+                                        "0: the whole ground is heated; > 0: only a patch around the domain's "
+                                        "horizontal centre, S times (1 - (r/R)^2)^2 for r < R (one isolated cloud)")
     noise_offset: list = _spec([0.0, 0.0], -1e6, 1e6, "", "shift of the noise pattern (noise units); seeds vary it",
                                length=2)
 

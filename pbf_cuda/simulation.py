@@ -137,6 +137,7 @@ def build_params(scene: Scene, capacity: int):
         p.heating_depth = depth
         p.noise_frequency = a.noise_frequency
         p.noise_amplitude = a.noise_amplitude
+        p.heating_patch_radius = a.heating_patch_radius
         p.noise_offset = list(a.noise_offset)
         sm = scene.smoothing
         p.kappa = sm.kappa if scene.smoothing_active else 0.0

@@ -39,6 +39,10 @@ for step in "$@"; do
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
     constant_gravity) timeout 400 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
+    adaptive_pareto|adaptive_pareto_cumulus)  # paper scale, 3 seeds; runs cached in $CLOUDPBF_RUNS across calls
+      scene=growing; [ "$step" = adaptive_pareto_cumulus ] && scene=cumulus
+      timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
+        --backend cuda --scheduler inline --out "$R" -q ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista

@@ -211,10 +211,14 @@ def test_internal_gravity_wave_frequency(backend):
     assert abs(period / expected - 1.0) < 0.1
 
 
-def test_ground_heating_follows_the_noise_pattern():
+@pytest.mark.parametrize("patch", [0.0, 300.0])
+def test_ground_heating_follows_the_noise_pattern(patch):
+    """Eq. 5 on the whole ground, or (patch > 0) times (1 - (r/R)^2)^2 within R of the domain's centre, in the
+    particle solver and the same field in the grid baseline."""
     # scorr_k = 0: next to a wall a lattice settles a little under s_corr, which the adiabatic term would add
     scene = small_cloud_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0, "pbf.scorr_k": 0.0,
-                                 "smoothing.kappa": 0.0, "particles.max_speed": 0.0, "time.dt": 1.0})
+                                 "smoothing.kappa": 0.0, "particles.max_speed": 0.0, "time.dt": 1.0,
+                                 "atmosphere.heating_patch_radius": patch})
     a = scene.atmosphere
     sim = Simulation(scene, backend="cpu")
     s0 = by_id(sim.state())
@@ -225,7 +229,22 @@ def test_ground_heating_follows_the_noise_pattern():
     depth = max(a.heating_depth, scene.particles.spacing)
     ground = p[:, 1] < depth
     from pbf_cuda.noise import heating_pattern
-    expect = a.heating_rate * a.heating_depth / depth * heating_pattern(p[:, 0], p[:, 2], a.noise_frequency,
-                                                                       a.noise_amplitude, a.noise_offset)
+    pattern = heating_pattern(p[:, 0], p[:, 2], a.noise_frequency, a.noise_amplitude, a.noise_offset)
+    if patch:
+        q = 1.0 - ((p[:, 0] - scene.domain.size[0] / 2) ** 2 + (p[:, 2] - scene.domain.size[2] / 2) ** 2) / patch**2
+        pattern = pattern * np.where(q > 0, q * q, 0.0)
+        assert (ground & (q > 0.5)).any() and (ground & (q <= 0)).any()
+    expect = a.heating_rate * a.heating_depth / depth * pattern
     assert np.allclose(dT[ground], expect[ground], atol=1e-4)
     assert np.abs(dT[~ground]).max() < 1e-4
+    from grid_baseline.model import make_aux, params_from_scene, cell_centers
+    gp = params_from_scene(scene, (16, 32, 16))   # 50 m cells: the lowest is heated
+    import jax.numpy as jnp
+    heat = np.asarray(make_aux(gp, jnp.float32)["heat"])[:, 0, :]
+    xc, _, zc = cell_centers(gp)
+    X, Z = np.meshgrid(xc, zc, indexing="ij")
+    grid_pattern = heating_pattern(X.ravel(), Z.ravel(), a.noise_frequency, a.noise_amplitude, a.noise_offset)
+    if patch:
+        q = 1.0 - ((X.ravel() - scene.domain.size[0] / 2) ** 2 + (Z.ravel() - scene.domain.size[2] / 2) ** 2) / patch**2
+        grid_pattern = grid_pattern * np.where(q > 0, q * q, 0.0)
+    assert np.allclose(heat.ravel(), a.heating_rate * grid_pattern, atol=1e-5 * a.heating_rate)

@@ -239,7 +239,7 @@ NB_MODULE(_core, m) {
     PBF_RW(velocity_projection); PBF_RW(divergence_iterations); PBF_RW(divergence_tolerance); PBF_RW(viscosity); PBF_RW(smoothing_beta);
     PBF_RW(max_density_error); PBF_RW(thermodynamics); PBF_RW(ground_temperature); PBF_RW(lapse_rate);
     PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
-    PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude);
+    PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude); PBF_RW(heating_patch_radius);
     PBF_RW(kappa); PBF_RW(smoothing_epsilon); PBF_RW(adaptive); PBF_RW(max_level); PBF_RW(k_p); PBF_RW(k_c);
     PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(lookahead_height); PBF_RW(capacity);
 #undef PBF_RW

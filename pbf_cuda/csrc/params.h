@@ -52,6 +52,7 @@ struct Params {
     float heating_depth = 0.0f;        // m
     float noise_frequency = 0.0f;      // 1/m
     float noise_amplitude = 0.0f;
+    float heating_patch_radius = 0.0f; // m; 0: the whole ground is heated
     float noise_offset[2] = {0, 0};
     // Temperature smoothing (section 4.1); kappa = 0 => no pass
     float kappa = 0.0f;

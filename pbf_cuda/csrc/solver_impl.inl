@@ -536,6 +536,9 @@ public:
         atm_.noise_amplitude = p_.noise_amplitude;
         atm_.noise_offset[0] = p_.noise_offset[0];
         atm_.noise_offset[1] = p_.noise_offset[1];
+        atm_.patch_radius = p_.heating_patch_radius;
+        atm_.patch_centre[0] = 0.5f * p_.domain[0];
+        atm_.patch_centre[1] = 0.5f * p_.domain[2];
         atm_.dt = p_.dt;
 
         ap_.k_p = p_.k_p;

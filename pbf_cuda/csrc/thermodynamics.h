@@ -25,6 +25,7 @@ struct AtmosphereParams {
     float buoyancy, cloud_gravity, dry_lapse_rate, latent_heat, phase_rate;
     float sat_a, sat_b, sat_c;
     float heating_rate, heating_depth, noise_frequency, noise_amplitude, noise_offset[2];
+    float patch_radius, patch_centre[2];   // heated patch (m); radius 0: the whole ground
     float dt;
 
     PBF_HD float environment_temperature(float y) const { return ground_temperature - lapse_rate * y; }
@@ -34,6 +35,11 @@ struct AtmosphereParams {
         double n = simplex2(double(x) * noise_frequency + noise_offset[0],
                             double(z) * noise_frequency + noise_offset[1]);
         float s = 1.0f + noise_amplitude * float(n);
+        if (patch_radius > 0.0f) {  // one heated patch: (1 - (r/R)^2)^2 inside r < R
+            float dx = x - patch_centre[0], dz = z - patch_centre[1];
+            float q = 1.0f - (dx * dx + dz * dz) / (patch_radius * patch_radius);
+            s *= q > 0.0f ? q * q : 0.0f;
+        }
         return s > 0.0f ? s : 0.0f;
     }
     // Temperature change of one step from the ground heating at position x (eq. 5), K.

@@ -1,0 +1,302 @@
+"""Adaptive against uniform particles: run time against error, seed means against an independent reference.
+
+For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide domain), the study runs
+
+* uniform (non-adaptive) runs at four spacings, e.g. 68, 54, 43 and 34 m at the GPU scale,
+* every adaptive variant (refinement criterion ``paper`` = eq. 20 on the cloud water, ``lookahead`` = eq. 20
+  on the water a particle would hold after rising ``lookahead_height``) at two level-0 spacings (68 and 54 m),
+* a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
+
+each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
+is reduced to its *seed mean* time series, and the reference to the mean of its seeds, so that neither is one
+realisation of a chaotic flow.  Errors of a configuration (relative L2 norms over the snapshot times)::
+
+    e_cover, e_volume, e_lwp      cloud cover, cloudy volume, mean liquid water path
+    e_base, e_top                 cloud base and top heights (times where both have cloud)
+    e_profile                     the final cloud-fraction profile a_c(z)
+    error = (e_cover + e_volume + e_lwp) / 3
+
+``error_seed_spread`` is the standard deviation over seeds of the same error computed per seed: below it two
+configurations cannot be told apart; ``noise_floor`` (in the verdict) is the mean error of a single reference
+seed against the reference mean.  Time is ms per step of the step loop (``step_wall_s / steps``) of the same
+runs; ``pbf_ms_per_particle`` the PBF phase per step divided by the mean particle count.
+
+Outputs (OUT/data): ``adaptive_pareto.csv`` (one row per run, with the configuration's errors repeated on
+each of its seeds' rows) and ``adaptive_verdict.json``::
+
+    {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
+     "variants": [{"name", "spacing_m", "criterion", "speedup_at_equal_error", "error", "ms_per_step",
+                   "particles", "cost_ratio_per_particle"}],
+     "best": {...}, "verdict": "...", "noise_floor": f, "device": ..., "commit": ...}
+
+where a variant's speed-up is the uniform front's ms/step, interpolated (log-log) at the variant's error,
+divided by the variant's own; a variant more accurate than every uniform run, or less than all of them, has
+no speed-up (null) and the verdict says so.
+
+    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--scale gpu]
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from bench import runs
+from bench.studies.context import StudyContext
+from bench.studies.scales import scale_steps
+from pbf_cuda.scene import Scene, load_scene
+
+SCENES = ("growing", "cumulus")
+CRITERIA = ("paper", "lookahead")
+UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
+ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
+REFERENCE_SPACING = 27.0
+ANALYSIS_GRID = (32, 32, 32)
+SPACING_FACTOR = {"gpu": 1.0, "cpu": 3.0, "smoke": 6.0}
+"""Spacings are multiplied by this at smaller scales (cpu: 27x fewer particles, smoke: 216x)."""
+SERIES = (("cover", "cloud_cover"), ("volume", "cloudy_volume"), ("lwp", "lwp_mean"),
+          ("base", "cloud_base"), ("top", "cloud_top"))
+
+
+@dataclass(frozen=True)
+class Config:
+    """One configuration of the study (all its seeds share it)."""
+    name: str          # uniform-68m, paper-54m, lookahead-68m, reference-27m
+    kind: str          # uniform | adaptive | reference
+    spacing_m: float   # particle spacing (adaptive: level 0)
+    criterion: str     # "" for uniform runs
+
+
+def configs(scale_name: str) -> list[Config]:
+    f = SPACING_FACTOR.get(scale_name, 1.0)
+    out = [Config(f"uniform-{s:g}m", "uniform", s * f, "") for s in UNIFORM_SPACINGS]
+    out += [Config(f"{c}-{s:g}m", "adaptive", s * f, c) for c in CRITERIA for s in ADAPTIVE_SPACINGS]
+    out.append(Config(f"reference-{REFERENCE_SPACING:g}m", "reference", REFERENCE_SPACING * f, ""))
+    return out
+
+
+def scene_for(config: Config, scene_name: str, step_fraction: float) -> Scene:
+    base = load_scene(f"{scene_name}_adaptive" if config.kind == "adaptive" else scene_name)
+    scene = base.with_spacing(config.spacing_m)
+    if config.kind == "adaptive":
+        scene = scene.replace(**{"adaptive.criterion": config.criterion})
+    return scale_steps(scene, step_fraction)
+
+
+def plan(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[Config, int, runs.RunSpec]]:
+    out = []
+    for config in configs(ctx.scale.name):
+        scene = scene_for(config, scene_name, ctx.scale.step_fraction)
+        for seed in range(seeds):
+            # one checkpoint at the end: a study run is short, and full-state writes would dominate its time
+            spec = runs.RunSpec("particles", scene, backend=ctx.backend, seed=seed, keep_snapshots=1,
+                                checkpoint_every=scene.time.steps, diagnostics_resolution=ANALYSIS_GRID,
+                                warmup_steps=5)
+            out.append((config, seed, spec))
+    return out
+
+
+# ---- analysis --------------------------------------------------------------------------------------
+def _relative_l2(values, reference) -> float:
+    values, reference = np.asarray(values, float), np.asarray(reference, float)
+    ok = np.isfinite(values) & np.isfinite(reference)
+    norm = float(np.linalg.norm(reference[ok]))
+    if not ok.any() or norm == 0.0:
+        return math.nan
+    return float(np.linalg.norm(values[ok] - reference[ok])) / norm
+
+
+def signature(result: runs.RunResult) -> dict | None:
+    """Time series (on the snapshot times) and the final cloud-fraction profile of one run."""
+    stats, prof = result.stats(), result.profiles()
+    if not result.stable or not len(stats):
+        return None
+    sig = {"time": stats["time_s"].to_numpy(float)}
+    for key, column in SERIES:
+        sig[key] = stats[column].to_numpy(float) if column in stats else np.full(len(stats), np.nan)
+    if len(prof):
+        last = prof[prof["time_s"] == prof["time_s"].max()] if "time_s" in prof else prof
+        final = last.groupby("z", sort=True)["cloud_fraction"].mean()
+        sig["z"], sig["profile"] = final.index.to_numpy(float), final.to_numpy(float)
+    return sig
+
+
+def mean_signature(sigs: list[dict]) -> dict | None:
+    """Seed mean of signatures (on the first one's times); base/top averaged where defined."""
+    sigs = [s for s in sigs if s is not None]
+    if not sigs:
+        return None
+    t = sigs[0]["time"]
+    out = {"time": t}
+    for key, _ in SERIES:
+        stack = np.array([np.interp(t, s["time"], s[key]) if np.isfinite(s[key]).all() else
+                          _interp_nan(t, s["time"], s[key]) for s in sigs])
+        with np.errstate(all="ignore"):
+            out[key] = np.nanmean(stack, axis=0) if np.isfinite(stack).any() else np.full(len(t), np.nan)
+    if all("z" in s for s in sigs):
+        z = sigs[0]["z"]
+        out["z"] = z
+        out["profile"] = np.mean([np.interp(z, s["z"], s["profile"]) for s in sigs], axis=0)
+    return out
+
+
+def _interp_nan(t, ts, values):
+    """Linear interpolation that keeps NaN (no cloud) where the nearest sample is NaN."""
+    idx = np.clip(np.searchsorted(ts, t), 0, len(ts) - 1)
+    out = np.interp(t, ts, np.nan_to_num(values))
+    out[~np.isfinite(values[idx])] = np.nan
+    return out
+
+
+def errors(sig: dict | None, ref: dict | None) -> dict:
+    keys = [k for k, _ in SERIES] + ["profile"]
+    if sig is None or ref is None:
+        return {f"e_{k}": math.nan for k in keys} | {"error": math.nan}
+    out = {}
+    for key, _ in SERIES:
+        out[f"e_{key}"] = _relative_l2(_interp_nan(ref["time"], sig["time"], sig[key]), ref[key])
+    out["e_profile"] = (_relative_l2(np.interp(ref["z"], sig["z"], sig["profile"]), ref["profile"])
+                        if "z" in sig and "z" in ref else math.nan)
+    out["error"] = float(np.mean([out["e_cover"], out["e_volume"], out["e_lwp"]]))
+    return out
+
+
+def _ms_per_step(result: runs.RunResult, steps: int) -> float:
+    return 1e3 * float(result.step_wall_s) / steps if result.stable and steps else math.nan
+
+
+def _pbf_ms(result: runs.RunResult) -> float:
+    t = result.timings()
+    return t["pbf"]["total_ms"] / t["pbf"]["count"] if "pbf" in t and t["pbf"]["count"] else math.nan
+
+
+def _mean_particles(result: runs.RunResult) -> float:
+    stats = result.stats()
+    if "n_particles" in stats and len(stats):
+        return float(stats["n_particles"].mean())
+    return float(result.max_particles)
+
+
+def uniform_front(uniform: pd.DataFrame) -> pd.DataFrame:
+    """The uniform configurations no other uniform one beats in both ms/step and error, by error."""
+    from bench.report.plots import pareto_front
+    return pareto_front(uniform, "ms_per_step", "error").sort_values("error")
+
+
+def time_at_error(front: pd.DataFrame, error: float) -> float:
+    """ms/step of the uniform front at `error`, log-log interpolated; NaN outside the front's error range."""
+    if len(front) < 2 or not np.isfinite(error):
+        return math.nan
+    e, t = np.log(front["error"].to_numpy(float)), np.log(front["ms_per_step"].to_numpy(float))
+    if not e.min() <= math.log(error) <= e.max():
+        return math.nan
+    order = np.argsort(e)
+    return float(np.exp(np.interp(math.log(error), e[order], t[order])))
+
+
+def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
+    """PBF ms per particle of uniform runs at a particle count, interpolated in log(count)."""
+    u = uniform.dropna(subset=["pbf_ms_per_particle", "particles"]).sort_values("particles")
+    if len(u) < 2:
+        return math.nan
+    return float(np.interp(math.log(particles), np.log(u["particles"].to_numpy(float)),
+                           u["pbf_ms_per_particle"].to_numpy(float)))
+
+
+def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.RunResult], scene_name: str,
+            device: str, commit: str) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+    """(per-run rows, per-configuration rows, verdict)."""
+    sigs = [signature(r) for r in results]
+    by_config: dict[Config, list[int]] = {}
+    for i, (config, _, _) in enumerate(entries):
+        by_config.setdefault(config, []).append(i)
+    ref_config = next(c for c in by_config if c.kind == "reference")
+    reference = mean_signature([sigs[i] for i in by_config[ref_config]])
+    ref_seed_errors = [errors(sigs[i], reference)["error"] for i in by_config[ref_config]]
+    noise_floor = float(np.nanmean(ref_seed_errors)) if ref_seed_errors else math.nan
+
+    run_rows, config_rows = [], []
+    for config, idx in by_config.items():
+        mean_sig = mean_signature([sigs[i] for i in idx])
+        err = errors(mean_sig, reference)
+        per_seed = [errors(sigs[i], reference)["error"] for i in idx]
+        ms = [_ms_per_step(results[i], entries[i][2].total_steps) for i in idx]
+        pbf = [_pbf_ms(results[i]) for i in idx]
+        parts = [_mean_particles(results[i]) for i in idx]
+        stable = [bool(results[i].stable) for i in idx]
+        with np.errstate(all="ignore"):
+            row = {"config": config.name, "kind": config.kind, "criterion": config.criterion,
+                   "spacing_m": config.spacing_m, "seeds": len(idx), "stable_seeds": int(sum(stable)),
+                   "particles": float(np.nanmean(parts)), "ms_per_step": float(np.nanmean(ms)),
+                   "ms_per_step_spread": float(np.nanstd(ms)), "pbf_ms": float(np.nanmean(pbf)),
+                   **err, "error_seed_spread": float(np.nanstd(per_seed)) if np.isfinite(per_seed).any() else math.nan}
+        row["pbf_ms_per_particle"] = row["pbf_ms"] / row["particles"] if row["particles"] else math.nan
+        config_rows.append(row)
+        for i, e_seed in zip(idx, per_seed):
+            res = results[i]
+            run_rows.append({"config": config.name, "kind": config.kind, "criterion": config.criterion,
+                             "spacing_m": config.spacing_m, "seed": entries[i][1], "stable": bool(res.stable),
+                             "reason": res.reason, "particles": _mean_particles(res),
+                             "max_particles": res.max_particles,
+                             "ms_per_step": _ms_per_step(res, entries[i][2].total_steps), "pbf_ms": _pbf_ms(res),
+                             "error_this_seed": e_seed, **{f"config_{k}": v for k, v in err.items()},
+                             "device": res.device, "commit": commit, "run_dir": str(res.path)})
+    per_config = pd.DataFrame(config_rows)
+    uniform = per_config[per_config.kind == "uniform"].dropna(subset=["error", "ms_per_step"])
+    front = uniform_front(uniform) if len(uniform) else uniform
+    variants = []
+    for row in per_config[per_config.kind == "adaptive"].itertuples():
+        t_uniform = time_at_error(front, row.error)
+        speedup = t_uniform / row.ms_per_step if np.isfinite(t_uniform) else math.nan
+        cost = row.pbf_ms_per_particle / pbf_cost_at_count(uniform, row.particles) if row.particles else math.nan
+        variants.append({"name": row.config, "criterion": row.criterion, "spacing_m": row.spacing_m,
+                         "speedup_at_equal_error": None if not np.isfinite(speedup) else speedup,
+                         "error": row.error, "error_seed_spread": row.error_seed_spread,
+                         "ms_per_step": row.ms_per_step, "uniform_ms_at_equal_error":
+                         None if not np.isfinite(t_uniform) else t_uniform,
+                         "particles": row.particles, "cost_ratio_per_particle": cost})
+    per_config["speedup_at_equal_error"] = per_config["config"].map(
+        {v["name"]: v["speedup_at_equal_error"] for v in variants})
+    costs = [v["cost_ratio_per_particle"] for v in variants if np.isfinite(v["cost_ratio_per_particle"])]
+    verdict = {"scene": scene_name, "cost_ratio_per_particle": float(np.median(costs)) if costs else None,
+               "variants": variants, "noise_floor": noise_floor,
+               "uniform_front": front[["config", "error", "ms_per_step"]].to_dict("records"),
+               "device": device, "commit": commit}
+    verdict["best"], verdict["verdict"] = _verdict_text(variants, front, noise_floor, scene_name)
+    return pd.DataFrame(run_rows), per_config, verdict
+
+
+def _verdict_text(variants: list[dict], front: pd.DataFrame, noise_floor: float, scene_name: str):
+    scored = [v for v in variants if v["speedup_at_equal_error"] is not None]
+    if scored:
+        best = max(scored, key=lambda v: v["speedup_at_equal_error"])
+        s = best["speedup_at_equal_error"]
+        word = "faster" if s >= 1 else "slower"
+        text = (f"{scene_name}: the best adaptive variant, {best['name']}, is {s if s >= 1 else 1 / s:.2f}x {word} "
+                f"than uniform particles at its error {best['error']:.3f} (seed-noise floor {noise_floor:.3f}).")
+        return best, text
+    if not len(front) or not variants:
+        return None, f"{scene_name}: not enough stable runs with a measurable error to compare."
+    lo, hi = front["error"].min(), front["error"].max()
+    errs = ", ".join(f"{v['name']} {v['error']:.3f}" for v in variants)
+    return None, (f"{scene_name}: no adaptive variant lies within the uniform front's error range "
+                  f"[{lo:.3f}, {hi:.3f}] (adaptive errors: {errs}; seed-noise floor {noise_floor:.3f}).")
+
+
+def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: int = 3) -> dict:
+    """Run (or read) the study for one scene; write adaptive_pareto[_SCENE].csv and the verdict json."""
+    if scene_name not in SCENES:
+        raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
+    if not 3 <= int(seeds) <= 100:
+        raise ValueError(f"seeds = {seeds}: allowed 3..100 (seed means need at least three)")
+    entries = plan(ctx, scene_name, int(seeds))
+    results = ctx.run_parallel([e[2] for e in entries], f"adaptive-pareto {scene_name}")
+    device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
+    per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit)
+    suffix = "" if scene_name == "growing" else f"_{scene_name}"
+    runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")
+    runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
+    runs.atomic_write_json(ctx.data / f"adaptive_verdict{suffix}.json", verdict)
+    return {"runs": per_run, "configs": per_config, "verdict": verdict}
