@@ -146,21 +146,30 @@ PBF_INLINE uint32_t sub_cell_of(const GridGeometry& g, Vec3 p) {
 
 PBF_INLINE uint32_t nested_key(const GridGeometry& g, Vec3 p) { return cell_key(g, p) * kSubCells + sub_cell_of(g, p); }
 
-// Calls f(j, r, r2) for every particle j of `set` (with nested ranges) whose sub-cell lies closer to particle
-// i's sub-cell than max(largest radius in i's sub-cell, largest radius in j's sub-cell), with r = x_i - x_j
-// (minimum image) and r2 < that radius squared: a superset of the pairs with |r| < max(h_i, h_j). The test
-// reads only the sub-cells as sorted (i's own from its sort key), never the positions that moved since, so it
-// is symmetric: j is visited from i exactly when i is visited from j, and pair forces stay equal and opposite.
+// Calls f(j, r, r2) for particles j of `set` (with nested ranges) near particle i, r = x_i - x_j (minimum image),
+// a superset of the pairs with |r| < max(h_i, h_j). Two modes, chosen per pair of cells:
+//   sub-cell mode, when both cells are fine (largest radius <= the sub-cell side): a sub-cell S_j is visited
+//     when it lies closer to i's sub-cell S_i than R = max(largest radius in S_i, in S_j), and f is called for
+//     r2 < R^2. A fine particle amid fine ones scans the 3 x 3 x 3 sub-cells its support needs, as a uniform
+//     run at its spacing does, not the level-0 volume, 8 times larger.
+//   cell mode, otherwise: the cell's whole range, f called for r2 < R^2 with R = max(largest radius in i's cell,
+//     in j's cell): one contiguous loop, as the uniform search does.
+// Every test reads the sub-cells and cells as sorted (i's own from its sort key), never positions that moved since,
+// and is symmetric in i and j: j is visited from i exactly when i is from j, so pair forces stay equal and opposite.
 template <class F>
 PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q,
                                             F&& f) {
     const uint32_t key = set.key[i];
+    const uint32_t cell_i = key / kSubCells;
     uint32_t c[3];
-    cell_coords(g, key / kSubCells, c);
+    cell_coords(g, cell_i, c);
     const uint32_t si = key % kSubCells;
     const int sub_i[3] = {int(si & 1u), int((si >> 1) & 1u), int(si >> 2)};
+    const float sub_side = 0.5f * fminf(g.cell[0], fminf(g.cell[1], g.cell[2]));
     const float hs_i = set.sub_radius[key];
-    // Squared gap (m^2) along axis a between i's sub-cell and the sub-cells (s = 0, 1) of the cell at offset d:
+    const float hc_i = set.cell_radius[cell_i];
+    const bool fine_i = hc_i <= sub_side;
+    // Squared gap (m^2) along axis a between i's sub-cell and sub-cell s (0, 1) of the cell at offset d:
     // |o| - 1 whole sub-cells lie between them, o = 2 d + s - s_i.
     auto gap2 = [&](int a, int d, int s) {
         int o = 2 * d + s - sub_i[a];
@@ -172,28 +181,38 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
         int cz = int(c[2]) + dz;
         if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
         else if (cz < 0 || cz >= g.dims[2]) continue;
-        float ez = fminf(gap2(2, dz, 0), gap2(2, dz, 1));
         for (int dy = -1; dy <= 1; ++dy) {
             int cy = int(c[1]) + dy;
             if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
             else if (cy < 0 || cy >= g.dims[1]) continue;
-            float ey = ez + fminf(gap2(1, dy, 0), gap2(1, dy, 1));
             for (int dx = -1; dx <= 1; ++dx) {
                 int cx = int(c[0]) + dx;
                 if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
                 else if (cx < 0 || cx >= g.dims[0]) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
-                float hc = fmaxf(hs_i, set.cell_radius[cell]);
-                if (ey + fminf(gap2(0, dx, 0), gap2(0, dx, 1)) >= hc * hc) continue;  // also every empty cell
-                for (uint32_t s = 0; s < kSubCells; ++s) {
+                uint32_t b = set.start[cell], en = set.end[cell];
+                if (b == en) continue;
+                float hc = set.cell_radius[cell];
+                if (!(fine_i && hc <= sub_side)) {   // cell mode
+                    float rc = fmaxf(hc_i, hc);
+                    float rc2 = rc * rc;
+                    for (uint32_t j = b; j < en; ++j) {
+                        Float4 pj = set.pos[j];
+                        Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+                        float r2 = dot(r, r);
+                        if (r2 < rc2) f(j, r, r2);
+                    }
+                    continue;
+                }
+                for (uint32_t s = 0; s < kSubCells; ++s) {   // sub-cell mode
                     uint32_t sc = cell * kSubCells + s;
-                    uint32_t b = set.sub_start[sc], en = set.sub_end[sc];
-                    if (b == en) continue;
+                    uint32_t sb = set.sub_start[sc], se = set.sub_end[sc];
+                    if (sb == se) continue;
                     float hs = fmaxf(hs_i, set.sub_radius[sc]);
                     float rs2 = hs * hs;
                     float es = gap2(0, dx, int(s & 1u)) + gap2(1, dy, int((s >> 1) & 1u)) + gap2(2, dz, int(s >> 2));
                     if (es >= rs2) continue;
-                    for (uint32_t j = b; j < en; ++j) {
+                    for (uint32_t j = sb; j < se; ++j) {
                         Float4 pj = set.pos[j];
                         Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
                         float r2 = dot(r, r);
@@ -205,15 +224,6 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
     }
 }
 
-
-// Calls f(j, r, r2) for every particle j of `set` in the 3x3x3 block of cells centred on cell c with
-// |r| < r_max, r = q - x_j (minimum image). Whole cells whose box lies r_max or farther from q are
-// skipped before any of their particles is read (about a quarter of the block when the cell side equals
-// r_max, most of it for a small r_max). Only cells of the block are visited, wherever q lies.
-// The general form takes two more things. `slack` (m) widens the cell pruning (not the hit test) for
-// particles that may have left their cell's box since the sort, e.g. merged particles moved to their
-// midpoint. `first`/`stride` visit only the particles at positions first, first + stride, ... of each
-// cell: a team of `stride` threads (a CUDA warp) shares one search that way, each taking its `first`.
 template <class F>
 PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
                                              float r_max, float slack, uint32_t first, uint32_t stride, F&& f) {
