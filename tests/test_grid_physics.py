@@ -95,6 +95,16 @@ def test_total_water_conserved_with_heating_and_condensation():
     for r in rows[1:]:
         assert abs(r["total_water"] - w0) / w0 < 1e-12, r["total_water"] - w0
         assert r["divergence_rel"] < 1e-10
+    # The budget columns (the particle solver's meaning, K of mass-weighted mean temperature): latent heat
+    # is Q times the mean cloud water formed, the advection's numerical heat is negligible, and the terms
+    # add up to the change of the mean temperature.
+    last = rows[-1]
+    assert last["mass"] == pytest.approx(np.prod(scene.domain.size) * scene.particles.rest_density)
+    assert last["heat_latent_total"] == pytest.approx(scene.atmosphere.latent_heat * last["total_cloud"] / last["mass"],
+                                                      rel=1e-9)
+    assert abs(last["heat_numerical_total"]) < 1e-3 * last["heat_source_total"]
+    terms = sum(last[f"heat_{k}_total"] for k in ("source", "latent", "adiabatic", "smoothing", "numerical"))
+    assert terms == pytest.approx(last["mean_temperature"] - rows[0]["mean_temperature"], rel=1e-9)
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
