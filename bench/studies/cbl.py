@@ -165,6 +165,38 @@ def run_profiles(scene: Scene | str = "dry_cbl", times=(200.0, 400.0, 600.0), se
     return pd.concat(frames, ignore_index=True)[list(PROFILE_COLUMNS)]
 
 
+def plot_profiles(frame, path: str | Path) -> Path:
+    """One panel per time: both solvers' mean theta(z), the initial profile, and h (theory, each solver)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    times = sorted(frame["time_s"].unique())
+    fig, axes = plt.subplots(1, len(times), figsize=(3.2 * len(times), 4.2), sharey=True, squeeze=False)
+    for ax, t in zip(axes[0], times):
+        f = frame[frame["time_s"] == t]
+        ax.plot(f["theta_initial"], f["z"], color="0.6", lw=1, label="initial")
+        ax.plot(f["theta_particles"], f["z"], color="C0", marker=".", label="particles")
+        ax.plot(f["theta_grid"], f["z"], color="C1", marker=".", label="grid")
+        row = f.iloc[0]
+        ax.axhline(row["h_theory"], color="k", ls="--", lw=1, label="h encroachment")
+        ax.axhline(row["h_particles"], color="C0", ls=":", lw=1)
+        ax.axhline(row["h_grid"], color="C1", ls=":", lw=1)
+        lo = f["theta_initial"].min() - 0.2
+        ax.set_xlim(lo, max(f["theta_particles"].max(), f["theta_grid"].max()) + 0.5)
+        ax.set_ylim(0, 2.0 * row["h_theory"])
+        ax.set_title(f"t = {t:.0f} s")
+        ax.set_xlabel("mean theta (K)")
+    axes[0][0].set_ylabel("height (m)")
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.studies.cbl", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="dry_cbl")
@@ -172,11 +204,19 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--backend", default="cpu")
     ap.add_argument("--out", type=Path, default=Path("reports/gpu/data/cbl_profiles.csv"))
+    ap.add_argument("--plot", type=Path, default=None, help="also write the profiles as a PNG here")
+    ap.add_argument("--from-csv", action="store_true", help="plot the existing --out CSV without running")
     args = ap.parse_args(argv)
-    frame = run_profiles(args.scene, [float(t) for t in args.times.split(",")], args.seed, args.backend)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(args.out, index=False)
-    print(args.out)
+    if args.from_csv:
+        import pandas as pd
+        frame = pd.read_csv(args.out)
+    else:
+        frame = run_profiles(args.scene, [float(t) for t in args.times.split(",")], args.seed, args.backend)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        frame.to_csv(args.out, index=False)
+        print(args.out)
+    if args.plot is not None:
+        print(plot_profiles(frame, args.plot))
     return 0
 
 
