@@ -50,7 +50,7 @@ from jax_cfd.base import boundaries as cfd_boundaries  # noqa: E402
 from jax_cfd.base import grids as cfd_grids  # noqa: E402
 
 __all__ = ["Params", "params_from_scene", "initial_state", "make_aux", "advect", "physics", "pressure_project",
-           "full_step", "phase_transition", "STATE_KEYS"]
+           "full_step", "step_with_budget", "budget_terms", "BUDGET_TERMS", "phase_transition", "STATE_KEYS"]
 
 STATE_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
 UP = 1  # y is up
@@ -85,6 +85,7 @@ class Params:
     gravity: tuple
     cfl_target: float = 0.8
     max_substeps: int = 16
+    rest_density: float = 1.0   # kg/m^3: a cell's mass is rest_density * cell volume (budgets)
 
     @property
     def steps(self) -> tuple:
@@ -108,7 +109,8 @@ def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
         heating_patch_radius=float(a.heating_patch_radius),
         initial_vapor_ratio=a.initial_vapor_ratio, vapor_profile=a.vapor_profile,
         vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
-        cfl_target=float(cfl_target), max_substeps=int(max_substeps))
+        cfl_target=float(cfl_target), max_substeps=int(max_substeps),
+        rest_density=float(scene.particles.rest_density))
 
 
 # ---- geometry ---------------------------------------------------------------------------
@@ -375,3 +377,37 @@ def full_step(state, aux, p: Params):
     state = physics(state, aux, p)
     state = pressure_project(state, aux, p)
     return state, nsub
+
+
+# ---- budget ---------------------------------------------------------------------------------
+# The particle solver's StepBudget (pbf_cuda/csrc/solver_api.h) for the grid: each term is the step's
+# change of the mass-weighted mean temperature (K) from one process.  Cells hold equal masses
+# (rest_density * cell volume), so mass-weighted means are plain cell means.
+#   heat_source    = dt mean(S)                      ground heating (eq. 5)
+#   heat_latent    = Q (mean(w_after) - mean(w_before))   latent heat (eq. 11)
+#   heat_adiabatic = -Gamma_d dt mean(u_y)            eq. 7: -Gamma_d times the rise of the mass centre
+#                                                     (0 up to the projection's tolerance: a divergence-free
+#                                                     flow between walls carries no net mass upward)
+#   heat_smoothing = 0                                no temperature smoothing in the grid (section 4.1)
+#   heat_numerical = the rest of the change of mean(T): what the advection scheme creates or
+#                    destroys (flux-form van Leer conserves sum(theta') only for a divergence-free
+#                    velocity; it is the grid's counterpart of the particles' smoothing heat)
+# The five add up to mean(T_after) - mean(T_before) exactly.
+BUDGET_TERMS = ("heat_source", "heat_latent", "heat_adiabatic", "heat_smoothing", "heat_numerical")
+
+
+def budget_terms(before, after, aux, p: Params):
+    """The step budget (K, see BUDGET_TERMS) from the states before and after one step; a 1-D array."""
+    dt = p.dt
+    source = dt * jnp.mean(aux["heat"]) if p.heating_rate > 0.0 else jnp.zeros((), before["theta"].dtype)
+    latent = p.latent_heat * (jnp.mean(after["cloud"]) - jnp.mean(before["cloud"]))
+    adiabatic = -p.dry_lapse_rate * dt * jnp.mean(_to_center(before["uy"], UP, p.periodic[UP]))
+    change = jnp.mean(after["theta"] - before["theta"])
+    zero = jnp.zeros_like(change)
+    return jnp.stack([source, latent, adiabatic, zero, change - source - latent - adiabatic])
+
+
+def step_with_budget(state, aux, p: Params):
+    """full_step and its budget: (state, nsub, budget_terms)."""
+    new, nsub = full_step(state, aux, p)
+    return new, nsub, budget_terms(state, new, aux, p)

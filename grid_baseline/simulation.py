@@ -37,9 +37,9 @@ import jax
 import jax.numpy as jnp
 
 from . import _pbf
-from .model import (STATE_KEYS, advect, cell_centers, full_step, initial_state, make_aux, params_from_scene,
-                    physics, pressure_project)
-from .projection import relative_divergence
+from .model import (BUDGET_TERMS, STATE_KEYS, advect, budget_terms, cell_centers, initial_state, make_aux,
+                    params_from_scene, physics, pressure_project, step_with_budget)
+from .projection import _lower_face, relative_divergence
 
 __all__ = ["GridSimulation", "GridInstabilityError", "grid_shape", "PHASES"]
 
@@ -131,6 +131,11 @@ class GridSimulation:
         self._diag_fn = _jitted("diagnostics", p)
         self._health_fn = _jitted("health", p)
         self._nsub = jnp.asarray(1, jnp.int32)
+        # Budget (see model.BUDGET_TERMS): the last step's terms and their running sums since step 0, K.
+        self._budget_fn = _jitted("budget", p)
+        self._budget_last = np.zeros(len(BUDGET_TERMS))
+        self._budget_totals = jnp.zeros(len(BUDGET_TERMS), self.dtype)
+        self._budget_valid = False
         self._step = 0
         self._last_good = 0
         self._timers = {}
@@ -153,12 +158,14 @@ class GridSimulation:
                 chunk = min(chunk, self.check_every - (self._step % self.check_every))
             step_fn = self._fn("step")
             t0 = time.perf_counter()
-            s, a, nsub = self._state, self._aux, self._nsub
+            s, a, nsub, totals = self._state, self._aux, self._nsub, self._budget_totals
             for _ in range(chunk):
-                s, nsub = step_fn(s, a)
+                s, nsub, terms = step_fn(s, a)
+                totals = totals + terms
             jax.block_until_ready(s)
             self._add_time("step", (time.perf_counter() - t0) * 1e3, chunk)
-            self._state, self._nsub = s, nsub
+            self._state, self._nsub, self._budget_totals = s, nsub, totals
+            self._budget_last, self._budget_valid = terms, True
             self._step += chunk
             done += chunk
             self._maybe_check()
@@ -194,6 +201,9 @@ class GridSimulation:
         self._add_time("physics", (t2 - t1) * 1e3, 1)
         self._add_time("projection", (t3 - t2) * 1e3, 1)
         self._add_time("step", (t3 - t_start) * 1e3, 1)
+        terms = self._budget_fn(self._state, s, a)
+        self._budget_totals = self._budget_totals + terms
+        self._budget_last, self._budget_valid = terms, True
         self._state, self._nsub = s, nsub
         self._step += 1
         self._maybe_check()
@@ -315,7 +325,19 @@ class GridSimulation:
             d["cloud_base"] = d["cloud_top"] = float("nan")
         d["cloud_fraction_volume"] = d["cloud_cells"] / self.n_cells
         d["dt"] = p.dt
+        # The particle solver's budget columns (same names, meanings and units; README "Budgets"):
+        # last step's warming per process and running totals (K), plus heat_numerical (model.BUDGET_TERMS).
+        last = np.asarray(self._budget_last, dtype=np.float64) if self._budget_valid else np.zeros(len(BUDGET_TERMS))
+        totals = np.asarray(self._budget_totals, dtype=np.float64)
+        for k, name in enumerate(BUDGET_TERMS):
+            d[name] = float(last[k])
+            d[name + "_total"] = float(totals[k])
         return d
+
+    def budget_totals(self) -> dict:
+        """Running sums since step 0 of the budget terms (K), keyed like stats()' ``*_total`` columns."""
+        totals = np.asarray(self._budget_totals, dtype=np.float64)
+        return {name + "_total": float(totals[k]) for k, name in enumerate(BUDGET_TERMS)}
 
     # ---- runs and snapshots -------------------------------------------------------------
     def run(self, steps: int | None = None, out_dir: str | Path | None = None, snapshot_every: int | None = None,
@@ -358,7 +380,8 @@ class GridSimulation:
         meta = {"version": SNAPSHOT_VERSION, "solver": "grid_baseline", "scene": self.scene.to_dict(),
                 "step": self._step, "time": self.time, "shape": list(self.shape),
                 "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device),
-                "cfl_target": self.params.cfl_target, "max_substeps": self.params.max_substeps}
+                "cfl_target": self.params.cfl_target, "max_substeps": self.params.max_substeps,
+                "budget_totals": [float(x) for x in np.asarray(self._budget_totals, dtype=np.float64)]}
         return _pbf.atomic_savez(path, meta, **arrays)
 
     @classmethod
@@ -374,11 +397,13 @@ class GridSimulation:
                   cfl_target=meta["cfl_target"], max_substeps=meta["max_substeps"])
         sim._state = jax.device_put({k: jnp.asarray(v, dtype=sim.dtype) for k, v in raw.items()}, sim.device)
         sim._step = sim._last_good = int(meta["step"])
+        if meta.get("budget_totals") is not None:
+            sim._budget_totals = jnp.asarray(meta["budget_totals"], dtype=sim.dtype)
         return sim
 
 
 _JIT_CACHE: dict = {}
-_PHASE_FUNCS = {"step": full_step, "advection": advect, "physics": physics, "projection": pressure_project}
+_PHASE_FUNCS = {"step": step_with_budget, "advection": advect, "physics": physics, "projection": pressure_project}
 
 
 def _jitted(name: str, p):
@@ -394,6 +419,8 @@ def _jitted(name: str, p):
             fn = jax.jit(lambda s, a: _diagnostics(s, a, p))
         elif name == "health":
             fn = jax.jit(_health)
+        elif name == "budget":
+            fn = jax.jit(lambda before, after, a: budget_terms(before, after, a, p))
         else:
             raise KeyError(name)
         _JIT_CACHE[key] = fn
@@ -433,8 +460,18 @@ def _diagnostics(state, aux, p):
     vel = (state["ux"], state["uy"], state["uz"])
     speed = jnp.max(jnp.stack([jnp.max(jnp.abs(u)) for u in vel]))
     column_cloudy = jnp.any(cloudy, axis=1)
+    rho = p.rest_density
+    stable = p.dry_lapse_rate - p.lapse_rate
+    ape_scale = 0.5 / stable if stable > 0.0 else 0.0
+    ke = 0.5 * rho * vol * sum(jnp.sum(0.5 * (u * u + _lower_face(u, a, p.periodic[a]) ** 2))
+                               for a, u in enumerate(vel))
     return {
-        "total_water": jnp.sum(v + w) * vol,          # kg/kg * m^3 (times rest density: kg)
+        # budget columns of the particle solver (kg, m, J, K; see model.BUDGET_TERMS)
+        "mass": jnp.asarray(rho * vol * w.size, w.dtype),
+        "mass_centre_height": jnp.mean(ycol),
+        "kinetic_energy": ke,
+        "potential_energy": rho * vol * jnp.sum(p.buoyancy / t0 * theta * theta) * ape_scale,
+        "total_water": jnp.sum(v + w) * vol * rho,    # kg (rest density times kg/kg times m^3)
         "total_vapor": jnp.sum(v) * vol,
         "total_cloud": jnp.sum(w) * vol,
         "mean_temperature": jnp.mean(t0 + theta),
@@ -460,7 +497,9 @@ def _courant(vel, p):
 STATS_COLUMNS = ("step", "time", "total_water", "total_vapor", "total_cloud", "heat", "mean_temperature",
                  "mean_theta_perturbation", "max_cloud", "cloud_cells", "cloud_fraction_volume", "cloud_cover",
                  "cloud_base", "cloud_top", "max_speed", "max_w_up", "cfl", "substeps", "divergence_rel", "cells",
-                 "nx", "ny", "nz", "dt", "dtype", "device", "backend")
+                 "nx", "ny", "nz", "dt", "dtype", "device", "backend",
+                 "mass", "mass_centre_height", "kinetic_energy", "potential_energy",
+                 *BUDGET_TERMS, *(t + "_total" for t in BUDGET_TERMS))
 
 
 def write_stats_csv(rows, path) -> Path:

@@ -9,3 +9,19 @@ def by_id(state: dict) -> dict:
     """State arrays reordered by particle id (the solver re-sorts particles every step)."""
     order = np.argsort(state["id"], kind="stable")
     return {k: v[order] for k, v in state.items()}
+
+
+def model_lcl(atmosphere, surface_temperature, q):
+    """The model's lifting condensation level (m): z = (T_s - T_d) / Gamma_d with the dew point of the
+    saturation law of eq. 10, s(T_d) = q  =>  T_d = B / ln(q / A) - C."""
+    a = atmosphere
+    dew_point = a.saturation_b / np.log(q / a.saturation_a) - a.saturation_c
+    return (surface_temperature - dew_point) / a.dry_lapse_rate
+
+
+def cloud_base_of_layers(z, cloud):
+    """Cloud base (m) of a layer-mean cloud-water profile (cloud[k] at height z[k]): the zero of the straight
+    line through the two lowest cloudy layers (cloud water grows linearly with the supersaturation above the
+    base, so this resolves the base inside a layer)."""
+    j = int(np.nonzero(np.asarray(cloud) > 0.0)[0][0])
+    return float(z[j] - cloud[j] * (z[j + 1] - z[j]) / (cloud[j + 1] - cloud[j]))

@@ -8,6 +8,9 @@ import pytest
 jax = pytest.importorskip("jax")
 pytest.importorskip("jax_cfd")
 import jax.numpy as jnp  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from solver_helpers import cloud_base_of_layers, model_lcl  # noqa: E402
 
 from grid_baseline import GridSimulation  # noqa: E402
 from grid_baseline._pbf import load_scene  # noqa: E402
@@ -95,6 +98,16 @@ def test_total_water_conserved_with_heating_and_condensation():
     for r in rows[1:]:
         assert abs(r["total_water"] - w0) / w0 < 1e-12, r["total_water"] - w0
         assert r["divergence_rel"] < 1e-10
+    # The budget columns (the particle solver's meaning, K of mass-weighted mean temperature): latent heat
+    # is Q times the mean cloud water formed, the advection's numerical heat is negligible, and the terms
+    # add up to the change of the mean temperature.
+    last = rows[-1]
+    assert last["mass"] == pytest.approx(np.prod(scene.domain.size) * scene.particles.rest_density)
+    assert last["heat_latent_total"] == pytest.approx(scene.atmosphere.latent_heat * last["total_cloud"] / last["mass"],
+                                                      rel=1e-9)
+    assert abs(last["heat_numerical_total"]) < 1e-3 * last["heat_source_total"]
+    terms = sum(last[f"heat_{k}_total"] for k in ("source", "latent", "adiabatic", "smoothing", "numerical"))
+    assert terms == pytest.approx(last["mean_temperature"] - rows[0]["mean_temperature"], rel=1e-9)
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -114,30 +127,32 @@ def test_resting_stratified_atmosphere_stays_at_rest(dtype):
 
 
 # ---- docs/design.md checks: lifting condensation level-----------------------------------------------
-def test_uniform_vapor_cloud_layer_base_at_lcl():
-    """Parcel scene with uniform vapor (atmosphere.vapor_profile = 'uniform'): neutral (theta = 300 K
-    everywhere) and one q at every height, so the air that condenses first is the environment air itself,
-    T_s = theta - Q w = 300 K, T_d from its q: everything above z = (T_s - T_d)/Gamma_d (~381 m) is
-    supersaturated, the first cloud forms in the first step as a layer, and its base must sit at that
-    height.  The grid resolves it to a cell: the base is measured as the lower face of the lowest cloudy
-    cell (the boundary between clear and cloudy cells)."""
-    scene = load_scene("parcel").replace(**{"atmosphere.vapor_profile": "uniform"})
+@settings(max_examples=2, deadline=None)   # each example compiles the step (~7 s); the particle twin draws 30
+@given(ground=st.floats(280.0, 305.0), rh=st.floats(0.5, 0.95))
+def test_uniform_vapor_cloud_layer_base_at_lcl(ground, rh):
+    """Parcel scene with uniform vapor (atmosphere.vapor_profile = 'uniform'): neutral (theta = T_ground
+    everywhere) and one q = rh s(T_ground) at every height, so the air that condenses first is the
+    environment air itself, T_s = T_ground, T_d from its q: everything above z = (T_s - T_d)/Gamma_d is
+    supersaturated and the first cloud forms in the first step as a layer.  Every cell whose centre lies
+    above that height is cloudy and every one below is clear (the grid samples the base to a cell), and
+    the base of the layer-mean cloud water (zero of the line through the two lowest cloudy layers) is
+    within 1% of it.  The particle solver's twin: tests/test_cloud_physics.py."""
+    scene = load_scene("parcel").replace(**{"atmosphere.vapor_profile": "uniform",
+                                            "domain.size": [300.0, 1600.0, 300.0], "atmosphere.heating_rate": 0.0,
+                                            "atmosphere.ground_temperature": ground,
+                                            "atmosphere.initial_vapor_ratio": rh})
     sim = GridSimulation(scene)
     p = sim.params
     assert sim.fields()["cloud"].max() == 0.0
     sim.step(1)
     f = sim.fields()
     w = f["cloud"]
-    cloudy_layers = np.nonzero((w > 0.0).any(axis=(0, 2)))[0]
-    assert len(cloudy_layers) > 0
-    jb = cloudy_layers[0]
-    assert (w[:, jb:, :] > 0.0).all()          # a layer: everything above the base is cloud
-    base = jb * p.steps[1]
-    theta_s = float(np.mean(f["potential_temperature"][:, jb, :] - p.latent_heat * w[:, jb, :]))
-    q = float(np.mean(f["vapor"][:, jb, :] + w[:, jb, :]))
-    lcl = (theta_s - _dew_point(p, q)) / p.dry_lapse_rate
-    assert 300.0 < lcl < 500.0
-    assert abs(base - lcl) / lcl < 0.10, (base, lcl)
+    lcl = model_lcl(scene.atmosphere, ground, rh * scene.saturation(ground))
+    assert 50.0 < lcl < 1500.0
+    above = f["y"] > lcl
+    assert (w[:, above, :] > 0.0).all() and (w[:, ~above, :] == 0.0).all()
+    base = cloud_base_of_layers(f["y"], w.mean(axis=(0, 2)))
+    assert abs(base / lcl - 1.0) < 0.01, (base, lcl, p.steps[1])
 
 
 def test_parcel_scene_rising_air_condenses_at_its_lcl():
@@ -166,6 +181,7 @@ def test_parcel_scene_rising_air_condenses_at_its_lcl():
     lcl = (theta_s - _dew_point(p, q)) / p.dry_lapse_rate
     assert z > scene.atmosphere.heating_depth and f["velocity"][i][1] > 0.0   # rising air, above the heating
     assert abs(z - lcl) / lcl < 0.10, (z, lcl, sim.step_count)
+    assert abs(z - lcl) < p.steps[1], (z, lcl, sim.step_count)                # within one cell
 
 
 # ---- docs/design.md checks: internal gravity wave-----------------------------------------------------------

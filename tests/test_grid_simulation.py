@@ -81,6 +81,8 @@ def test_snapshot_round_trip(sim, tmp_path):
     other.step(3)
     for k in ("temperature", "vapor", "cloud", "velocity"):
         np.testing.assert_array_equal(sim.fields()[k], other.fields()[k])
+    assert other.budget_totals() == sim.budget_totals()            # the snapshot carries the budget's totals
+    assert sim.budget_totals()["heat_source_total"] > 0.0
 
 
 def test_run_writes_snapshots_and_stats(cloudy_scene, tmp_path):
@@ -104,6 +106,9 @@ def test_phase_timing_mode_gives_the_same_state(cloudy_scene):
     assert all(t[k]["count"] == 4 for k in t)
     for k in ("temperature", "vapor", "cloud", "velocity"):
         np.testing.assert_allclose(a.fields()[k], b.fields()[k], rtol=1e-12, atol=1e-12)
+    sa, sb = a.stats(), b.stats()
+    for k in ("heat_source", "heat_latent", "heat_numerical", "heat_source_total", "heat_latent_total"):
+        assert sa[k] == pytest.approx(sb[k], rel=1e-9, abs=1e-15), k     # one budget in both timing modes
 
 
 def test_seed_moves_the_heating_pattern():

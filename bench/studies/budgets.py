@@ -1,0 +1,118 @@
+"""Heat and water budgets of the particle solver and the grid baseline, side by side, for one scene.
+
+Both solvers write the same budget columns with every stats() row (docs/validation.md, "Budgets of
+both solvers"): the running totals of the mass-weighted mean warming from each process (K) and the
+total water (kg).  This runs one scene in both (the grid at one cell per particle spacing, so both
+sample the heating pattern at the same sites) and writes, every `every` steps:
+
+    solver, time_s, step, mean_temperature, heat_source_total, heat_latent_total, heat_adiabatic_total,
+    heat_smoothing_total, heat_numerical_total (grid only), total_water, mass_centre_height,
+    kinetic_energy, device, commit
+
+    python -m bench.studies.budgets --scene growing --particles 8000 --steps 250 \\
+        --out reports/gpu/data/budgets.csv --plot reports/gpu/budgets.png
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pbf_cuda.scene import load_scene
+
+COLUMNS = ("solver", "time_s", "step", "mean_temperature", "heat_source_total", "heat_latent_total",
+           "heat_adiabatic_total", "heat_smoothing_total", "heat_numerical_total", "total_water",
+           "mass_centre_height", "kinetic_energy", "device", "commit")
+HEAT_TERMS = ("source", "latent", "adiabatic", "smoothing", "numerical")
+
+
+def run_budgets(scene="growing", particles: int | None = 8000, steps: int | None = None, every: int = 10,
+                seed: int = 0, backend: str = "cpu", quiet: bool = False):
+    """Both solvers' budget rows (a DataFrame with COLUMNS)."""
+    import pandas as pd
+
+    from bench.studies.environment import commit as git_commit
+    from bench.studies.scales import scale_scene
+    from grid_baseline import GridSimulation
+    from pbf_cuda import Simulation
+
+    scene = load_scene(scene) if isinstance(scene, str) else scene
+    scene = scale_scene(scene, particles)
+    steps = scene.time.steps if steps is None else int(steps)
+    part = Simulation(scene, backend=backend, seed=seed)
+    grid = GridSimulation(scene, seed=seed, resolution=scene.lattice_shape())
+    commit = git_commit()
+    rows = []
+    for name, sim in (("particles", part), ("grid", grid)):
+        device = sim.backend if name == "particles" else sim.stats()["device"]
+        done = 0
+        first = len(rows)
+        while True:
+            st = sim.stats()
+            rows.append({"solver": name, "time_s": sim.time, "step": sim.step_count,
+                         **{c: st.get(c, np.nan) for c in COLUMNS[3:-2]}, "device": device, "commit": commit})
+            if done >= steps:
+                break
+            n = min(every, steps - done)
+            sim.step(n)
+            done += n
+        if not quiet:
+            last = rows[-1]
+            terms = ", ".join(f"{t} {last[f'heat_{t}_total']:.4g}" for t in HEAT_TERMS)
+            change = last["mean_temperature"] - rows[first]["mean_temperature"]
+            print(f"{name}: {scene.name} {steps} steps: mean T change {change:.4g} K; {terms}", file=sys.stderr)
+    return pd.DataFrame(rows)[list(COLUMNS)]
+
+
+def plot_budgets(frame, path):
+    """Cumulative warming per process (K) against time, particles solid, grid dashed."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for solver, ls in (("particles", "-"), ("grid", "--")):
+        f = frame[frame["solver"] == solver]
+        if not len(f):
+            continue
+        change = f["mean_temperature"] - f["mean_temperature"].iloc[0]
+        ax.plot(f["time_s"], change, color="k", ls=ls, label=f"{solver}: mean T change")
+        for k, term in enumerate(HEAT_TERMS):
+            col = f[f"heat_{term}_total"]
+            if col.notna().any() and np.nanmax(np.abs(col)) > 0:
+                ax.plot(f["time_s"], col, color=f"C{k}", ls=ls, label=f"{solver}: {term}")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("mass-weighted mean warming (K)")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.studies.budgets", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene", default="growing")
+    ap.add_argument("--particles", type=int, default=8000, help="particle count (0: the scene file's spacing)")
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--every", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--backend", default="cpu")
+    ap.add_argument("--out", type=Path, default=Path("reports/gpu/data/budgets.csv"))
+    ap.add_argument("--plot", type=Path, default=None)
+    args = ap.parse_args(argv)
+    frame = run_budgets(args.scene, args.particles or None, args.steps, args.every, args.seed, args.backend)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(args.out, index=False)
+    print(args.out)
+    if args.plot is not None:
+        print(plot_budgets(frame, args.plot))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
