@@ -82,6 +82,22 @@ def write_synthetic_study(out, renders=True):
         sweep.append(("grid", "grid", "cells", cells, 0.01 * cells**1.5, err, err + 0.15))
     pd.DataFrame(sweep, columns=["method", "mode", "parameter", "value", "wall_s", "error_self", "error_other"]).assign(
         device=DEVICE, commit=COMMIT).to_csv(data / "sweep.csv", index=False)
+    # adaptive-pareto: uniform runs on a power-law front, two adaptive variants, the reference
+    from bench.studies.adaptive_pareto import time_at_error  # noqa: F401  (the study's module imports cleanly)
+    configs = [("uniform-68m", "uniform", "", 68.0, 1e5, 5.0, 0.27), ("uniform-54m", "uniform", "", 54.0, 2e5, 6.4, 0.21),
+               ("uniform-43m", "uniform", "", 43.0, 4e5, 9.1, 0.14), ("uniform-34m", "uniform", "", 34.0, 8e5, 14.8, 0.08),
+               ("paper-68m", "adaptive", "paper", 68.0, 1.2e5, 4.0, 0.20),
+               ("lookahead-68m", "adaptive", "lookahead", 68.0, 1.4e5, 4.5, 0.15),
+               ("reference-27m", "reference", "", 27.0, 1.7e6, 28.0, 0.0)]
+    frame = pd.DataFrame(configs, columns=["config", "kind", "criterion", "spacing_m", "particles", "ms_per_step", "error"])
+    frame = frame.assign(error_seed_spread=0.02, pbf_ms_per_particle=1e-5, e_cover=frame.error, e_volume=frame.error,
+                         e_lwp=frame.error, e_base=0.05, e_top=0.05, e_profile=0.2, speedup_at_equal_error=None)
+    frame.to_csv(data / "adaptive_pareto_configs.csv", index=False)
+    frame.assign(seed=0, device=DEVICE, commit=COMMIT).to_csv(data / "adaptive_pareto.csv", index=False)
+    (data / "adaptive_verdict.json").write_text(json.dumps({
+        "scene": "growing", "cost_ratio_per_particle": 1.1, "noise_floor": 0.02, "variants": [],
+        "verdict": "growing: the best adaptive variant, lookahead-68m, is 1.60x faster than uniform particles.",
+        "device": DEVICE, "commit": COMMIT}))
     pd.DataFrame([
         ("dt", 0.5, True, "", 400, 4096, 3.0, 0.01), ("dt", 2.0, True, "", 400, 4096, 3.5, 0.01),
         ("dt", 8.0, True, "", 400, 4096, 6.0, 0.03), ("dt", 32.0, False, "velocity bound exceeded", 17, 4096, 250.0, 0.4),
@@ -148,12 +164,12 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["environment", "table1", "phases", "scaling", "adaptive", "compare", "sweep", "stress",
+    assert expected == ["environment", "table1", "phases", "scaling", "adaptive", "compare", "sweep", "adaptive_pareto", "stress",
                         "renders", "figure1", "figure3"]
     # self-contained: only in-page anchors and embedded images
     assert not re.search(r"https?://", page)
     assert all(r.startswith("#") or r.startswith("data:image/png;base64,") for r in parser.refs), parser.refs
-    assert parser.images == 13   # every figure and render of the synthetic study
+    assert parser.images == 14   # every figure and render of the synthetic study
     sections = _sections(page)
     for sid in expected:
         assert "not run in this study" not in sections[sid], sid

@@ -50,6 +50,7 @@ SECTIONS = (
     ("adaptive", "Adaptive against non-adaptive"),
     ("compare", "Particles against the grid baseline"),
     ("sweep", "Run time against error"),
+    ("adaptive_pareto", "Adaptive mode at equal error"),
     ("stress", "Stability map"),
     ("renders", "Cloud renders"),
     ("figure1", "Figure 1: temperature smoothing"),
@@ -66,6 +67,7 @@ COMMANDS = {
     "constant_gravity": "python -m bench.studies.constant_gravity --out {out}/data/constant_gravity.csv",
     "compare": "cloudpbf compare growing --out {out}",
     "sweep": "cloudpbf sweep --out {out}",
+    "adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}",
     "stress": "cloudpbf stress --out {out}",
     "renders": "cloudpbf demo --out {out}",
 }
@@ -522,6 +524,33 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.provenance = _provenance(df, env=env)
 
 
+def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
+    """Per scene (growing, cumulus): the Pareto plot, the configurations and the study's verdict."""
+    shown = False
+    for scene, suffix in (("growing", ""), ("cumulus", "_cumulus")):
+        configs, _ = inp.csv(f"adaptive_pareto_configs{suffix}")
+        verdict_path = inp.data / f"adaptive_verdict{suffix}.json"
+        if configs is None or not verdict_path.is_file():
+            continue
+        shown = True
+        verdict = json.loads(verdict_path.read_text())
+        sec.add("text", f"{verdict.get('verdict', '')} PBF cost per adaptive particle against a uniform particle at "
+                        f"equal count: {verdict.get('cost_ratio_per_particle') or float('nan'):.2f}x.")
+        sec.add("image", plots.adaptive_pareto_plot(configs, verdict.get("noise_floor")), caption=(
+            f"{scene}: ms per step against the error of each configuration's seed mean (cover, cloudy volume and "
+            "LWP time series against the mean of the finer reference's seeds); bars: seed spread of the error; "
+            "grey band: a single reference seed's error (differences below it cannot be told apart)."))
+        cols = [c for c in ("config", "particles", "ms_per_step", "pbf_ms_per_particle", "error", "error_seed_spread",
+                            "e_cover", "e_volume", "e_lwp", "e_base", "e_top", "e_profile", "speedup_at_equal_error")
+                if c in configs.columns]
+        sec.add("table", _table(configs[cols]), caption=f"{scene}: one row per configuration (seed means)")
+        runs_df, _ = inp.csv(f"adaptive_pareto{suffix}")
+        sec.provenance = _provenance(runs_df, env=env)
+    if not shown:
+        _missing(sec, "adaptive_pareto_configs.csv (adaptive against uniform at equal error)", "adaptive_pareto",
+                 inp.out)
+
+
 def _study_verdict(inp: Inputs) -> str:
     """The sweep study's own verdict (OUT/data/sweep_verdict.json), if it wrote one."""
     path = inp.data / "sweep_verdict.json"
@@ -634,7 +663,7 @@ def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 
 STUDY_OF_SECTION = {"table1": "table1", "phases": "table1", "scaling": "scaling", "adaptive": "compare",
-                    "compare": "compare", "sweep": "sweep", "stress": "stress", "renders": "renders",
+                    "compare": "compare", "sweep": "sweep", "adaptive_pareto": "adaptive_pareto", "stress": "stress", "renders": "renders",
                     "figure1": "renders", "figure3": "renders"}
 """Which study (a key of demo_status.json) writes the inputs of each section."""
 
@@ -653,7 +682,8 @@ def _study_failure(status: dict, section_id: str) -> str:
 
 BUILDERS = {
     "environment": _environment, "table1": _table1, "phases": _phases, "scaling": _scaling,
-    "adaptive": _adaptive, "compare": _compare, "sweep": _sweep, "stress": _stress,
+    "adaptive": _adaptive, "compare": _compare, "sweep": _sweep, "adaptive_pareto": _adaptive_pareto,
+    "stress": _stress,
     "renders": _renders, "figure1": _figure1, "figure3": _figure3,
 }
 

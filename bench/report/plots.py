@@ -320,3 +320,38 @@ def _truthy(value) -> bool:
     if isinstance(value, str):
         return value.strip().lower() in ("true", "1", "yes", "stable")
     return bool(value) and not (isinstance(value, float) and np.isnan(value))
+
+
+# ------------------------------------------------------------------------------------------
+# adaptive-pareto: adaptive variants against the uniform front
+# ------------------------------------------------------------------------------------------
+def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None) -> str:
+    """ms/step against the seed-mean error per configuration: uniform runs joined as their Pareto front,
+    adaptive variants as points with the seed spread of their error as horizontal bars, and the
+    reference seeds' own spread (the noise floor) as a shaded band."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    d = configs[configs["kind"] != "reference"].dropna(subset=["error", "ms_per_step"])
+    uniform = d[d["kind"] == "uniform"]
+    front = pareto_front(uniform, "ms_per_step", "error").sort_values("error")
+    ax.errorbar(uniform["error"], uniform["ms_per_step"], xerr=uniform["error_seed_spread"], fmt="o",
+                color="#444444", capsize=3, label="uniform")
+    ax.plot(front["error"], front["ms_per_step"], "-", color="#444444", lw=1, label="uniform front")
+    for row in uniform.itertuples():
+        ax.annotate(f"{row.spacing_m:g} m", (row.error, row.ms_per_step), textcoords="offset points", xytext=(4, 4),
+                    fontsize=8)
+    markers = {"paper": "s", "lookahead": "D"}
+    for i, (crit, g) in enumerate(d[d["kind"] == "adaptive"].groupby("criterion")):
+        ax.errorbar(g["error"], g["ms_per_step"], xerr=g["error_seed_spread"], fmt=markers.get(crit, "^"),
+                    color=f"C{i + 1}", capsize=3, label=f"adaptive, {crit}")
+        for row in g.itertuples():
+            ax.annotate(f"{row.spacing_m:g} m", (row.error, row.ms_per_step), textcoords="offset points",
+                        xytext=(4, -10), fontsize=8, color=f"C{i + 1}")
+    if noise_floor and np.isfinite(noise_floor):
+        ax.axvspan(0, noise_floor, color="#dddddd", alpha=0.6, label="seed-noise floor")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("error of the seed mean against the reference (cover, volume, LWP)")
+    ax.set_ylabel("ms per step")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return to_data_uri(fig)
