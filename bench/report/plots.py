@@ -36,6 +36,16 @@ def to_data_uri(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
+def save_png(fig, path, dpi: int = 110):
+    """Write a figure to a PNG file (parent folders made), close it, return the path."""
+    from pathlib import Path
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def png_file_uri(path) -> str:
     """A PNG file (e.g. a pyvista render) as a data URI."""
     with open(path, "rb") as fh:

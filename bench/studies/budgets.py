@@ -87,11 +87,8 @@ def plot_budgets(frame, path):
     ax.set_ylabel("mass-weighted mean warming (K)")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    from bench.report.plots import save_png
+    return save_png(fig, path)
 
 
 def main(argv=None) -> int:

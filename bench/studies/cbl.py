@@ -190,11 +190,8 @@ def plot_profiles(frame, path: str | Path) -> Path:
     axes[0][0].set_ylabel("height (m)")
     axes[0][0].legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    from bench.report.plots import save_png
+    return save_png(fig, path)
 
 
 def main(argv=None) -> int:
