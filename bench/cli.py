@@ -201,7 +201,7 @@ def _context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Ba
     from bench import runs
     from bench.studies.context import SchedulerError, StudyContext, check_scheduler_address
     from bench.studies.scales import resolve_scale
-    from bench.studies.environment import write_environment
+    from bench.environment import write_environment
     _check_folder(out, "--out")
     _check_folder(runs_root, "--runs-root")
     with _refusals():

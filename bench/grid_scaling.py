@@ -93,7 +93,7 @@ def append_rows(path: Path, rows) -> None:
 def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
                      out="reports/gpu/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
     """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
-    from grid_baseline._pbf import load_scene
+    from pbf_cuda.scene import load_scene
     if steps < 1:
         raise ValueError("--steps must be >= 1")
     scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene

@@ -3,7 +3,7 @@
 A :class:`RunSpec` says what to run (solver, scene, backend, steps, seed, options).  Its key is the
 sha256 of the scene's parameters (its description aside), the solver, the resolved backend, the
 step count, the seed, the run options and the *code version*: a hash of the source files the result
-depends on (see :data:`CODE_SOURCES`), so editing the solver, the grid baseline or the statistics
+executes (see :func:`code_sources`: the modules its solver adapter drives and all they import), so editing the solver, the grid baseline or the statistics
 invalidates earlier runs of that solver.  The compiled module carries the hash of the csrc sources it
 was built from and is refused when they differ (pbf_cuda.buildinfo), so a stale build never runs.
 
@@ -39,6 +39,7 @@ The default root is ``$CLOUDPBF_RUNS``, else ``runs/`` in a source checkout, els
 """
 from __future__ import annotations
 
+import ast
 import contextlib
 import dataclasses
 import datetime as _dt
@@ -72,11 +73,9 @@ RUN_FORMAT = 2          # bump when the run directory layout or the loop's seman
 SOLVERS = ("particles", "grid")
 MAX_STEPS = 10**7
 SOURCE_SUFFIXES = (".py", ".h", ".hpp", ".cuh", ".cu", ".cpp", ".cc", ".c", ".inl")
-# Source files whose content decides a run's result, per solver (paths relative to the repository).
-CODE_SOURCES = {
-    "particles": ("pbf_cuda", "CMakeLists.txt", "bench/statistics.py"),
-    "grid": ("grid_baseline", "pbf_cuda/scene.py", "pbf_cuda/noise.py", "bench/statistics.py"),
-}
+FIRST_PARTY = ("pbf_cuda", "grid_baseline", "bench")   # the packages whose sources a code version reads
+# Compiled modules and the source files (relative to the repository) they are built from.
+NATIVE_SOURCES = {"pbf_cuda._core": ("pbf_cuda/csrc", "CMakeLists.txt")}
 STATS_VECTOR_AXES = "xyz"
 GRID_BYTES_PER_CELL = 800    # fields, auxiliaries and jit buffers of the grid baseline in float64
 
@@ -101,23 +100,8 @@ def default_root() -> Path:
 
 
 # ---- atomic writes (pbf_cuda.files: one helper, one file mode, fsync of file and folder) ---------
-from pbf_cuda.files import FILE_MODE, atomic_path, atomic_write_text, remove_stale_temps  # noqa: E402,F401
-
-
-def _json_default(value):
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (np.floating,)):
-        return float(value)
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def atomic_write_json(path: str | Path, obj: Any, sort_keys: bool = True) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=_json_default) + "\n")
+from pbf_cuda.files import (FILE_MODE, json_default, atomic_path, atomic_write_json, atomic_write_text,  # noqa: E402,F401
+                            remove_stale_temps)
 
 
 def write_csv(frame, path: str | Path) -> Path:
@@ -159,14 +143,60 @@ def _source_files(entry: str) -> list[Path]:
                   and "__pycache__" not in p.parts)
 
 
+def _module_file(module: str) -> Path | None:
+    base = REPO_ROOT.joinpath(*module.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imported_modules(path: Path, module: str) -> set[str]:
+    """First-party modules that a source file imports, anywhere in it (imports inside functions too).
+    ``from package import name`` names the submodule when there is one, else the package."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_bytes(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            parts = package.split(".")[:len(package.split(".")) - node.level + 1] if node.level else []
+            base = ".".join(parts + ([node.module] if node.module else []))
+            for alias in node.names:
+                sub = f"{base}.{alias.name}"
+                found.add(sub if sub in NATIVE_SOURCES or _module_file(sub) is not None else base)
+    return {name for name in found if name.split(".")[0] in FIRST_PARTY}
+
+
+def code_sources(modules: Iterable[str]) -> list[Path]:
+    """The source files that `modules` run: their files, those of every first-party module they import
+    (followed to any depth), the __init__.py of each package on the way (a package's face: read, its
+    re-exports not followed), and the native sources of the compiled modules among them."""
+    files, todo, seen = set(), list(modules), set()
+    while todo:
+        module = todo.pop()
+        if module in seen:
+            continue
+        seen.add(module)
+        parts = module.split(".")
+        files.update(f for f in (_module_file(".".join(parts[:i])) for i in range(1, len(parts))) if f)
+        for entry in NATIVE_SOURCES.get(module, ()):
+            files.update(_source_files(entry))
+        path = _module_file(module)
+        if path is not None:
+            files.add(path)
+            todo.extend(_imported_modules(path, module))
+    return sorted(files)
+
+
 @functools.lru_cache(maxsize=None)
 def code_version(solver: str) -> str:
-    """sha256 (16 hex) of the source files a `solver` run depends on (CODE_SOURCES), names and contents."""
+    """sha256 (16 hex) of the source files a `solver` run executes (code_sources of the modules its adapter
+    drives), names and contents."""
     digest = hashlib.sha256()
-    for entry in CODE_SOURCES[solver]:
-        for path in _source_files(entry):
-            digest.update(str(path.relative_to(REPO_ROOT)).encode() + b"\0")
-            digest.update(path.read_bytes() + b"\0")
+    for path in code_sources(ADAPTERS[solver].modules):
+        digest.update(str(path.relative_to(REPO_ROOT)).encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
     return digest.hexdigest()[:16]
 
 
@@ -301,7 +331,7 @@ class RunSpec:
 
     def key(self, identity: dict | None = None) -> str:
         """sha256 (hex) of identity()."""
-        blob = json.dumps(identity or self.identity(), sort_keys=True, default=_json_default).encode()
+        blob = json.dumps(identity or self.identity(), sort_keys=True, default=json_default).encode()
         return hashlib.sha256(blob).hexdigest()
 
     def directory(self, root: str | Path | None = None, key: str | None = None) -> Path:
@@ -352,6 +382,7 @@ class ParticleAdapter:
     """pbf_cuda.Simulation behind the run loop."""
     solver = "particles"
     can_checkpoint = True
+    modules = ("pbf_cuda.simulation", "bench.statistics")    # what decides a result (see code_version)
 
     @staticmethod
     def resolve_backend(backend: str) -> str:
@@ -461,6 +492,7 @@ class GridAdapter:
     its step functions are compiled before the clock starts (GridSimulation.warmup)."""
     solver = "grid"
     can_checkpoint = True
+    modules = ("grid_baseline.simulation", "bench.statistics")
 
     @staticmethod
     def resolve_backend(backend: str) -> str:
@@ -639,7 +671,7 @@ def _is_temp(path: Path) -> bool:
 
 def _info_checksum(info: dict) -> str:
     body = {k: v for k, v in info.items() if k != "checksum"}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, default=_json_default).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=json_default).encode()).hexdigest()
 
 
 _VERIFIED: dict = {}     # result.json (path, mtime_ns, size) -> True: verified once in this process
@@ -974,7 +1006,7 @@ class _Run:
             write_parquet(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
         if self.step_rows:
             write_csv(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
-        from bench.studies.environment import device_description
+        from bench.environment import device_description
         backend = getattr(sim, "backend", None) or self.identity["backend"]
         info = {
             "format": RUN_FORMAT, "key": self.identity_key, "solver": spec.solver, "scene": spec.scene.name,

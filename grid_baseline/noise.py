@@ -27,7 +27,7 @@ import jax.numpy as jnp
 __all__ = ["simplex2", "simplex2_host", "heating_pattern", "noise_offset_for_seed", "PERMUTATION"]
 
 # Ken Perlin's reference permutation and the 2D gradients, shared with the float64 reference.
-from ._pbf import noise_module as _reference  # noqa: E402
+from pbf_cuda import noise as _reference  # noqa: E402
 
 PERMUTATION = _reference.PERMUTATION.astype(np.int32)
 _PERM = np.concatenate([PERMUTATION, PERMUTATION]).astype(np.int32)
@@ -114,5 +114,4 @@ def heating_pattern(x, z, frequency, amplitude, offset=(0.0, 0.0), dtype=jnp.flo
 
 def noise_offset_for_seed(seed: int) -> list[float]:
     """Offset of the heating pattern for a noise seed (noise units): the particle solver's own function."""
-    from ._pbf import noise_offset_for_seed as reference
-    return reference(seed)
+    return _reference.noise_offset_for_seed(seed)

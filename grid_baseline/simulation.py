@@ -36,7 +36,11 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
-from . import _pbf
+from pbf_cuda.export import fields_to_xarray
+from pbf_cuda.files import atomic_savez
+from pbf_cuda.noise import noise_offset_for_seed
+from pbf_cuda.scene import Scene, SceneError, load_scene, scene_from_dict
+
 from .model import (STATE_KEYS, advect, cell_centers, full_step, initial_state, make_aux, params_from_scene,
                     physics, pressure_project)
 from .projection import relative_divergence
@@ -103,14 +107,14 @@ class GridSimulation:
     def __init__(self, scene, seed: int | None = None, cells_per_spacing: float = 1.0, resolution=None,
                  dtype=None, device=None, timing: str = "fused", check_every: int | None = None,
                  cfl_target: float = 0.8, max_substeps: int = 16):
-        if not _pbf.is_scene(scene):
-            scene = _pbf.load_scene(scene)
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
         if scene.atmosphere is None:
-            raise _pbf.SceneError(f"{scene.name}: the grid baseline runs cloud scenes; this scene has no "
-                                  f"[atmosphere] section")
+            raise SceneError(f"{scene.name}: the grid baseline runs cloud scenes; this scene has no "
+                             f"[atmosphere] section")
         if seed is not None:
             scene = scene.replace(**{"particles.seed": int(seed),
-                                     "atmosphere.noise_offset": _pbf.noise_offset_for_seed(seed)})
+                                     "atmosphere.noise_offset": noise_offset_for_seed(seed)})
         if timing not in ("fused", "phases"):
             raise ValueError(f"timing = {timing!r}: allowed 'fused', 'phases'")
         self.scene = scene
@@ -268,7 +272,7 @@ class GridSimulation:
         standard_name, long_name, axis), and the scalar coordinates time (s) and step.  The same
         layout as particles deposited by ``bench.export.particles_to_xarray``, so the two solvers
         compare directly in xarray.  Needs xarray (``pip install "cloudpbf[io]"``)."""
-        return _pbf.fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
+        return fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
             "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": self.scene.name,
             "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device)})
 
@@ -359,7 +363,7 @@ class GridSimulation:
                 "step": self._step, "time": self.time, "shape": list(self.shape),
                 "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device),
                 "cfl_target": self.params.cfl_target, "max_substeps": self.params.max_substeps}
-        return _pbf.atomic_savez(path, meta, **arrays)
+        return atomic_savez(path, meta, **arrays)
 
     @classmethod
     def load_snapshot(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":
@@ -369,7 +373,7 @@ class GridSimulation:
             if meta.get("version") != SNAPSHOT_VERSION:
                 raise ValueError(f"{path}: snapshot version {meta.get('version')} != {SNAPSHOT_VERSION}")
             raw = {k: z[f"raw_{k}"] for k in STATE_KEYS}
-        scene = _pbf.scene_from_dict(meta["scene"], source=str(path))
+        scene = scene_from_dict(meta["scene"], source=str(path))
         sim = cls(scene, resolution=meta["shape"], dtype=dtype or meta["dtype"], device=device, timing=timing,
                   cfl_target=meta["cfl_target"], max_substeps=meta["max_substeps"])
         sim._state = jax.device_put({k: jnp.asarray(v, dtype=sim.dtype) for k, v in raw.items()}, sim.device)

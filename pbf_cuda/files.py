@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FILE_MODE", "atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_savez", "read_meta",
+__all__ = ["FILE_MODE", "atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_json", "json_default",
+           "atomic_savez", "read_meta",
            "fsync_dir", "remove_stale_temps", "is_temp"]
 
 FILE_MODE = 0o666          # less the umask: the mode of every file this project writes
@@ -72,6 +73,24 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode())
+
+
+def json_default(value):
+    """numpy scalars and arrays and paths as JSON."""
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def atomic_write_json(path: str | Path, obj, sort_keys: bool = True) -> Path:
+    """`obj` as indented JSON (numpy scalars and arrays, paths allowed), atomically."""
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=json_default) + "\n")
 
 
 def atomic_savez(path: str | Path, meta: dict, **arrays) -> Path:

@@ -193,7 +193,7 @@ def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock
 
 
 def test_environment_reports_the_cloudpbf_version():
-    from bench.studies.environment import versions
+    from bench.environment import versions
     assert versions()["cloudpbf"] == importlib.metadata.version("cloudpbf")
 
 
@@ -292,7 +292,7 @@ def test_the_ranges_include_the_versions_of_the_gpu_results():
 
 
 def test_environment_is_checked_against_the_lock(tmp_path):
-    from bench.studies.environment import environment, lock_check
+    from bench.environment import environment, lock_check
     lock = tmp_path / "constraints.txt"
     lock.write_text(f"# comment\nnumpy=={np.__version__}\npandas==0.0.1\nno-such-package==1.0\n")
     got = lock_check(lock)

@@ -10,7 +10,7 @@ pytest.importorskip("jax_cfd")
 import jax.numpy as jnp  # noqa: E402
 
 from grid_baseline import GridSimulation  # noqa: E402
-from grid_baseline._pbf import load_scene  # noqa: E402
+from pbf_cuda.scene import load_scene  # noqa: E402
 from grid_baseline.model import params_from_scene, phase_transition  # noqa: E402
 
 

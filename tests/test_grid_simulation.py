@@ -8,7 +8,7 @@ jax = pytest.importorskip("jax")
 pytest.importorskip("jax_cfd")
 
 from grid_baseline import GridInstabilityError, GridSimulation, grid_shape  # noqa: E402
-from grid_baseline._pbf import SceneError, load_scene  # noqa: E402
+from pbf_cuda.scene import SceneError, load_scene  # noqa: E402
 
 SMALL = (12, 10, 8)
 

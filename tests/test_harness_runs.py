@@ -47,8 +47,9 @@ def test_key_depends_on_what_decides_the_result(toy_solver, tmp_path, monkeypatc
     assert toy_spec(seed=2).key() != key
     assert toy_spec(steps=21).key() != key
     assert toy_spec(scene=toy_scene(**{"pbf.iterations": 5})).key() != key
-    # the code version: editing a source file of the solver gives a new key
+    # the code version: editing a source file of the solver (one its simulation module imports) gives a new key
     (tmp_path / "pbf_cuda").mkdir()
+    (tmp_path / "pbf_cuda" / "simulation.py").write_text("from .solver import a\n")
     src = tmp_path / "pbf_cuda" / "solver.py"
     src.write_text("a = 1\n")
     monkeypatch.setattr(runs, "REPO_ROOT", tmp_path)

@@ -22,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
 from pbf_cuda.scene import load_scene
 
 SCENES = ("growing_adaptive", "cycling_adaptive")

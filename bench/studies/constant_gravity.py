@@ -22,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
 from pbf_cuda.scene import load_scene
 
 COLUMNS = ("case", "constant_gravity", "cloud_gravity", "particles", "stable", "reason", "first_cloud_s",

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
 from bench.studies.scales import Scale
 
 __all__ = ["StudyContext", "StudyError", "INLINE"]

@@ -12,7 +12,7 @@ import traceback
 from pathlib import Path
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
 from bench.studies.compare import run_compare
 from bench.studies.context import StudyContext
 from bench.studies.renders import run_renders
