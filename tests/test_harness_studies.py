@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import runs
+from bench import execution, runs
 from bench.studies import stress, sweep
 from bench.studies.compare import scene_pair
 from bench.studies.context import INLINE, StudyContext, StudyError
@@ -117,7 +117,7 @@ TINY = dataclasses.replace(SCALES["smoke"], stress_particles=3000, stress_steps=
 
 
 def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, monkeypatch):
-    real_execute = runs.execute
+    real_execute = execution.execute
     calls = []
 
     def execute(spec, root=None, **kw):
@@ -126,7 +126,7 @@ def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, mon
             raise RuntimeError("worker lost")          # the 4th run dies, the study goes on
         return real_execute(spec, root, **kw)
 
-    monkeypatch.setattr(runs, "execute", execute)
+    monkeypatch.setattr(execution, "execute", execute)     # what the inline workers call
     ctx = StudyContext(out=tmp_path / "out", scale=TINY, runs_root=tmp_path / "runs", scheduler=INLINE, quiet=True)
     # 11 cases (3 dt, 2 iterations, 5 heating rates, 1 alpha*dt), 10 distinct runs: dt = 2 s and heating x1
     # are both the base scene

@@ -11,7 +11,8 @@ import json
 import numpy as np
 import pytest
 
-from bench import runs
+from bench import solvers
+from pbf_cuda.files import atomic_path
 from pbf_cuda.scene import load_scene
 
 
@@ -58,7 +59,7 @@ class ToySimulation:
             speed = np.linalg.norm(self.vel, axis=1)
             if speed.max() > self.scene.pbf.max_velocity:
                 bad = self.ids[speed > self.scene.pbf.max_velocity]
-                raise runs.RunInstability(self.step_count, "velocity above pbf.max_velocity", bad,
+                raise solvers.RunInstability(self.step_count, "velocity above pbf.max_velocity", bad,
                                           self.step_count - 1)
 
     def state(self):
@@ -80,7 +81,7 @@ class ToySimulation:
     def save(self, path):
         meta = json.dumps({"scene": self.scene.to_dict(), "step": self.step_count, "time": self.time,
                            "seed": self.seed})
-        with runs.atomic_path(path) as tmp:
+        with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, pos=self.pos, vel=self.vel, temperature=self.temperature,
                          meta=np.frombuffer(meta.encode(), np.uint8))
@@ -95,7 +96,7 @@ class ToySimulation:
         return cls(scene_from_dict(meta["scene"]), seed=meta["seed"], _state=state)
 
 
-class ToyAdapter(runs.ParticleAdapter):
+class ToyAdapter(solvers.ParticleAdapter):
     """The particle adapter with the toy solver and a small diagnostics function (mean height, profile)."""
 
     @staticmethod
@@ -104,7 +105,7 @@ class ToyAdapter(runs.ParticleAdapter):
 
     @staticmethod
     def instability_errors():
-        return (runs.RunInstability,)
+        return (solvers.RunInstability,)
 
     @staticmethod
     def preflight(spec):
@@ -135,7 +136,7 @@ class ToyAdapter(runs.ParticleAdapter):
 @pytest.fixture
 def toy_solver(monkeypatch):
     """Swap the particle solver for the toy; yields the ToySimulation class (its step counter reset)."""
-    monkeypatch.setitem(runs.ADAPTERS, "particles", ToyAdapter)
+    monkeypatch.setitem(solvers.ADAPTERS, "particles", ToyAdapter)
     ToySimulation.steps_taken = 0
     return ToySimulation
 
