@@ -39,13 +39,14 @@ from typing import Callable
 
 import numpy as np
 
-from bench.solvers import ADAPTERS, RunInstability, nonfinite_fields, nonfinite_ids, scene_params
+from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_params
 from bench.store.files import save_npz, sha256_file, write_csv, write_parquet
 from bench.store.identity import RUN_FORMAT, RunSpec
 from bench.store.lock import locked
 from bench.store.manifest import finished_files, info_checksum, manifest, now, quarantine, verify_run
 from bench.store.result import RunResult
 from pbf_cuda.files import atomic_write_json, remove_stale_temps
+from pbf_cuda.protocol import InstabilityError
 
 __all__ = ["execute", "execute_summary", "cached_result"]
 
@@ -154,7 +155,7 @@ class _Run:
         bad = nonfinite_fields(state)
         if bad:
             ids = nonfinite_ids(state) if "id" in state else []
-            raise RunInstability(step, f"NaN/Inf in {', '.join(bad)}", ids, step - 1)
+            raise InstabilityError(step, f"NaN/Inf in {', '.join(bad)}", ids, step - 1)
         if snapshot:
             save_npz(self.dir / "snapshots" / f"step_{step:06d}.npz",
                       {**state, "step": np.int64(step), "time_s": np.float64(sim.time)})
@@ -241,7 +242,7 @@ class _Run:
                 bar.update(n)
                 if self.on_step is not None:
                     self.on_step(s)
-        except self.adapter.instability_errors() as exc:
+        except InstabilityError as exc:
             failure = exc
             self.log(f"UNSTABLE: {exc}")
         except BaseException as exc:
@@ -291,9 +292,7 @@ class _Run:
             "particles": [] if failure is None else list(getattr(failure, "particles", []))[:16],
             "last_good_step": sim.step_count if failure is None else failure.last_good_step,
             "time_s": float(sim.time) if failure is None else None,
-            "max_particles": max_particles if spec.solver == "particles" else None,
-            "split_capacity_rejects": self.rejects if spec.solver == "particles" else None,
-            "cells": max_particles if spec.solver == "grid" else None,
+            **self.adapter.result_fields(max_particles, self.rejects),
             "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
             "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,
             "step_ms": 1e3 * timed_wall / max(1, sim.step_count - spec.warmup_steps) if failure is None else None,

@@ -1,33 +1,22 @@
-"""The solvers behind the run loop: one adapter per solver (create, load, save, state, statistics row,
-checks, diagnostics) and ADAPTERS, the table bench.execution looks them up in."""
+"""The solvers behind the run loop.  Both solvers speak pbf_cuda.protocol.SimulationProtocol (step, state,
+stats, timings, save, size; one InstabilityError); an adapter holds what still differs: how a run is
+made and restored, what its memory check and its diagnostics are.  ADAPTERS is the table bench.execution
+looks them up in."""
 from __future__ import annotations
 
 import json
 import math
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
-__all__ = ["ADAPTERS", "SOLVERS", "ParticleAdapter", "GridAdapter", "RunInstability", "flatten"]
+from pbf_cuda.protocol import InstabilityError
+
+__all__ = ["ADAPTERS", "SOLVERS", "SolverAdapter", "ParticleAdapter", "GridAdapter", "InstabilityError", "flatten"]
 
 SOLVERS = ("particles", "grid")
 STATS_VECTOR_AXES = "xyz"
 GRID_BYTES_PER_CELL = 800    # fields, auxiliaries and jit buffers of the grid baseline in float64
-
-
-class RunInstability(RuntimeError):
-    """An instability found by the harness (particles escaping, NaN in fields or statistics).
-
-    Same fields as pbf_cuda.InstabilityError: step, reason, particles (ids), last_good_step."""
-
-    def __init__(self, step: int, reason: str, particles: Iterable[int] = (), last_good_step: int = -1):
-        self.step = int(step)
-        self.reason = reason
-        self.particles = [int(p) for p in particles]
-        self.last_good_step = int(last_good_step)
-        ids = ", ".join(map(str, self.particles[:16])) or "none identified"
-        super().__init__(f"unstable at step {self.step}: {reason}; particles (ids): {ids}")
 
 
 def flatten(values: dict) -> dict:
@@ -64,11 +53,47 @@ def nonfinite_fields(arrays: dict) -> list[str]:
             if isinstance(arr, np.ndarray) and arr.dtype.kind == "f" and not np.all(np.isfinite(arr))]
 
 
-class ParticleAdapter:
+class SolverAdapter:
+    """What the run loop does the same way for every solver (through the simulation protocol)."""
+    solver = ""
+    can_checkpoint = True
+    modules: tuple = ()          # the modules whose sources (and imports) decide a result (code_version)
+
+    @staticmethod
+    def expected_scene(spec):
+        """The scene a checkpoint of this spec must hold (None: not checked)."""
+        return None
+
+    @staticmethod
+    def save(sim, path: Path) -> None:
+        sim.save(path)
+
+    @staticmethod
+    def state(sim) -> dict:
+        return sim.state()
+
+    @staticmethod
+    def size(sim) -> int:
+        return int(sim.size)
+
+    @staticmethod
+    def step_row(sim) -> dict:
+        return flatten(sim.stats())
+
+    @staticmethod
+    def check(sim, spec, row: dict | None) -> None:
+        """Checks of the harness beyond the solver's own (which raise InstabilityError from step())."""
+
+    @staticmethod
+    def result_fields(largest: int, rejects: int) -> dict:
+        """The size fields of result.json: the largest size the run reached, and splits turned away."""
+        return {}
+
+
+class ParticleAdapter(SolverAdapter):
     """pbf_cuda.Simulation behind the run loop."""
     solver = "particles"
-    can_checkpoint = True
-    modules = ("pbf_cuda.simulation", "bench.statistics")    # what decides a result (see code_version)
+    modules = ("pbf_cuda.simulation", "bench.statistics")
 
     @staticmethod
     def resolve_backend(backend: str) -> str:
@@ -76,11 +101,6 @@ class ParticleAdapter:
             return backend
         from pbf_cuda.simulation import available_backends
         return "cuda" if "cuda" in available_backends() else "cpu"
-
-    @staticmethod
-    def instability_errors() -> tuple:
-        from pbf_cuda.simulation import InstabilityError
-        return (InstabilityError, RunInstability)
 
     @staticmethod
     def preflight(spec) -> None:
@@ -107,29 +127,17 @@ class ParticleAdapter:
         return Simulation.load(path, backend=ParticleAdapter.resolve_backend(spec.backend))
 
     @staticmethod
-    def save(sim, path: Path) -> None:
-        sim.save(path)
-
-    @staticmethod
-    def state(sim) -> dict:
-        return sim.state()
-
-    @staticmethod
-    def size(sim) -> int:
-        return int(sim.n_particles)
-
-    @staticmethod
-    def step_row(sim) -> dict:
-        return flatten(sim.stats())
+    def result_fields(largest: int, rejects: int) -> dict:
+        return {"max_particles": largest, "split_capacity_rejects": rejects, "cells": None}
 
     @staticmethod
     def check(sim, spec, row: dict | None) -> None:
-        """Raise RunInstability for NaN in stats() or particles outside a wall axis (by more than h0)."""
+        """Raise InstabilityError for NaN in stats() or particles outside a wall axis (by more than h0)."""
         row = row if row is not None else flatten(sim.stats())
         step = sim.step_count
         bad = [k for k, v in row.items() if isinstance(v, float) and not math.isfinite(v)]
         if bad:
-            raise RunInstability(step, f"NaN/Inf in solver statistics ({', '.join(bad)})",
+            raise InstabilityError(step, f"NaN/Inf in solver statistics ({', '.join(bad)})",
                                  nonfinite_ids(sim.state()), step - 1)
         scene = sim.scene
         tol = scene.kernel_radius
@@ -143,7 +151,7 @@ class ParticleAdapter:
             pos = sim.state()
             p = pos["position"][:, axis]
             ids = pos["id"][(p < -tol) | (p > size + tol)]
-            raise RunInstability(step, f"particles escaping the domain: {name} in [{lo:.6g}, {hi:.6g}] m, "
+            raise InstabilityError(step, f"particles escaping the domain: {name} in [{lo:.6g}, {hi:.6g}] m, "
                                        f"outside the walls [0, {size:g}] m", ids[:16], step - 1)
 
     @staticmethod
@@ -167,13 +175,12 @@ def nonfinite_ids(state: dict) -> list[int]:
     return [int(i) for i in state["id"][mask][:16]]
 
 
-class GridAdapter:
+class GridAdapter(SolverAdapter):
     """grid_baseline.GridSimulation behind the run loop.
 
-    The grid checks itself for NaN/Inf and speed every time.check_every steps (GridInstabilityError);
+    The grid checks itself for NaN/Inf and speed every time.check_every steps (InstabilityError);
     its step functions are compiled before the clock starts (GridSimulation.warmup)."""
     solver = "grid"
-    can_checkpoint = True
     modules = ("grid_baseline.simulation", "bench.statistics")
 
     @staticmethod
@@ -182,11 +189,6 @@ class GridAdapter:
             return backend
         import jax
         return "cuda" if jax.default_backend() == "gpu" else "cpu"
-
-    @staticmethod
-    def instability_errors() -> tuple:
-        from grid_baseline import GridInstabilityError
-        return (GridInstabilityError, RunInstability)
 
     @staticmethod
     def preflight(spec) -> None:
@@ -205,10 +207,6 @@ class GridAdapter:
                                  f"available; raise particles.spacing or lower cells_per_spacing")
 
     @staticmethod
-    def expected_scene(spec):
-        return None
-
-    @staticmethod
     def create(spec):
         from grid_baseline import GridSimulation
         sim = GridSimulation(spec.scene, seed=spec.seed, cells_per_spacing=spec.cells_per_spacing,
@@ -223,13 +221,9 @@ class GridAdapter:
     @staticmethod
     def load(path: Path, spec):
         from grid_baseline import GridSimulation
-        sim = GridSimulation.load_snapshot(path, device=GridAdapter._device(spec), dtype=spec.dtype)
+        sim = GridSimulation.load(path, device=GridAdapter._device(spec), dtype=spec.dtype)
         sim.warmup()
         return sim
-
-    @staticmethod
-    def save(sim, path: Path) -> None:
-        sim.save_snapshot(path)
 
     @staticmethod
     def state(sim) -> dict:
@@ -240,16 +234,8 @@ class GridAdapter:
         return fields
 
     @staticmethod
-    def size(sim) -> int:
-        return int(sim.n_cells)
-
-    @staticmethod
-    def step_row(sim) -> dict:
-        return flatten(sim.stats())
-
-    @staticmethod
-    def check(sim, spec, row: dict | None) -> None:
-        """Nothing more to check: GridSimulation.step checks NaN/Inf and speed itself."""
+    def result_fields(largest: int, rejects: int) -> dict:
+        return {"max_particles": None, "split_capacity_rejects": None, "cells": largest}
 
     @staticmethod
     def diagnostics(sim, spec, state: dict):

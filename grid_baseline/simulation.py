@@ -39,24 +39,17 @@ import jax.numpy as jnp
 from pbf_cuda.export import fields_to_xarray
 from pbf_cuda.files import atomic_savez
 from pbf_cuda.noise import noise_offset_for_seed
+from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import Scene, SceneError, load_scene, scene_from_dict
 
 from .model import (STATE_KEYS, advect, cell_centers, full_step, initial_state, make_aux, params_from_scene,
                     physics, pressure_project)
 from .projection import relative_divergence
 
-__all__ = ["GridSimulation", "GridInstabilityError", "grid_shape", "PHASES"]
+__all__ = ["GridSimulation", "InstabilityError", "grid_shape", "PHASES"]
 
 PHASES = ("advection", "physics", "projection")
 SNAPSHOT_VERSION = 1
-
-
-class GridInstabilityError(RuntimeError):
-    """NaN/Inf or a speed above pbf.max_velocity. Attributes: step, reason, last_good_step."""
-
-    def __init__(self, step: int, reason: str, last_good_step: int):
-        self.step, self.reason, self.last_good_step = int(step), reason, int(last_good_step)
-        super().__init__(f"grid unstable at step {step}: {reason}; last good step {last_good_step}")
 
 
 def grid_shape(scene, cells_per_spacing: float = 1.0, resolution=None) -> tuple:
@@ -141,7 +134,7 @@ class GridSimulation:
 
     # ---- stepping ----------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
-        """Advance n steps. Raises GridInstabilityError (the state then holds the failing step)."""
+        """Advance n steps. Raises InstabilityError (the state then holds the failing step)."""
         if n < 0:
             raise ValueError(f"n = {n}: must be >= 0")
         if n == 0:
@@ -207,14 +200,14 @@ class GridSimulation:
             self.check()
 
     def check(self) -> None:
-        """Raise GridInstabilityError on NaN/Inf or a speed above pbf.max_velocity."""
+        """Raise InstabilityError on NaN/Inf or a speed above pbf.max_velocity."""
         finite, vmax = (np.asarray(x) for x in self._health_fn(self._state))
         if not bool(finite):
-            raise GridInstabilityError(self._step, "NaN or Inf in the state", self._last_good)
+            raise InstabilityError(self._step, "NaN or Inf in the state", (), self._last_good)
         limit = self.scene.pbf.max_velocity
         if float(vmax) > limit:
-            raise GridInstabilityError(self._step, f"speed {float(vmax):.4g} m/s above pbf.max_velocity = {limit}",
-                                       self._last_good)
+            raise InstabilityError(self._step, f"speed {float(vmax):.4g} m/s above pbf.max_velocity = {limit}",
+                                   (), self._last_good)
         self._last_good = self._step
 
     def _add_time(self, name, ms, count):
@@ -243,6 +236,11 @@ class GridSimulation:
     @property
     def n_cells(self) -> int:
         return int(np.prod(self.shape))
+
+    @property
+    def size(self) -> int:
+        """Cells (the simulation protocol's size)."""
+        return self.n_cells
 
     @property
     def cell_size(self) -> tuple:
@@ -333,7 +331,7 @@ class GridSimulation:
         rows = [self.stats()]
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
-            self.save_snapshot(out / f"snapshot_{self._step:06d}.npz")
+            self.save(out / f"snapshot_{self._step:06d}.npz")
         end = self._step + steps
         while self._step < end:
             marks = [end]
@@ -347,13 +345,13 @@ class GridSimulation:
                 if progress is not None:
                     progress(rows[-1])
             if out is not None and snap > 0 and self._step % snap == 0:
-                self.save_snapshot(out / f"snapshot_{self._step:06d}.npz")
+                self.save(out / f"snapshot_{self._step:06d}.npz")
         if out is not None:
             write_stats_csv(rows, out / "stats.csv")
             (out / "timings.json").write_text(json.dumps(self.timings(), indent=1))
         return rows
 
-    def save_snapshot(self, path: str | Path) -> Path:
+    def save(self, path: str | Path) -> Path:
         """Write fields() (float32) and the raw state (model dtype) with metadata to an npz, atomically."""
         path = Path(path)
         f = self.fields()
@@ -366,8 +364,8 @@ class GridSimulation:
         return atomic_savez(path, meta, **arrays)
 
     @classmethod
-    def load_snapshot(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":
-        """Restore a run from save_snapshot() (bit-exact when dtype and device kind match)."""
+    def load(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":
+        """Restore a run from save() (bit-exact when dtype and device kind match)."""
         with np.load(Path(path)) as z:
             meta = json.loads(bytes(z["meta"]).decode())
             if meta.get("version") != SNAPSHOT_VERSION:

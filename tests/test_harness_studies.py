@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from bench import execution, runs
+from bench.pareto import pareto_mask
 from bench.studies import stress, sweep
 from bench.studies.compare import scene_pair
 from bench.studies.context import INLINE, StudyContext, StudyError
@@ -90,7 +91,7 @@ def test_errors_are_relative_l2():
 def test_pareto_mask():
     wall = np.array([1.0, 2.0, 3.0, 2.5, np.nan])
     error = np.array([0.5, 0.2, 0.1, 0.3, 0.0])
-    assert sweep.pareto_mask(wall, error).tolist() == [True, True, True, False, False]
+    assert pareto_mask(wall, error).tolist() == [True, True, True, False, False]
 
 
 def test_verdict_interpolates_wall_time_at_equal_error():

@@ -1,7 +1,7 @@
 """A small deterministic stand-in for pbf_cuda.Simulation, so the harness's cache, resume and
 instability handling are tested even where the compiled solver is absent.
 
-It honours the Simulation contract the run loop uses (step, step_count, time, n_particles, backend,
+It honours the simulation protocol the run loop uses (step, step_count, time, size, n_particles, backend,
 scene, state, stats, timings, reset_timings, save, load) and counts every step it takes.
 """
 from __future__ import annotations
@@ -13,6 +13,7 @@ import pytest
 
 from bench import solvers
 from pbf_cuda.files import atomic_path
+from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import load_scene
 
 
@@ -41,6 +42,10 @@ class ToySimulation:
     def n_particles(self):
         return len(self.pos)
 
+    @property
+    def size(self):
+        return self.n_particles
+
     def step(self, n=1):
         dt = self.scene.time.dt
         centre = np.asarray(self.scene.domain.size) / 2
@@ -59,7 +64,7 @@ class ToySimulation:
             speed = np.linalg.norm(self.vel, axis=1)
             if speed.max() > self.scene.pbf.max_velocity:
                 bad = self.ids[speed > self.scene.pbf.max_velocity]
-                raise solvers.RunInstability(self.step_count, "velocity above pbf.max_velocity", bad,
+                raise InstabilityError(self.step_count, "velocity above pbf.max_velocity", bad,
                                           self.step_count - 1)
 
     def state(self):
@@ -102,10 +107,6 @@ class ToyAdapter(solvers.ParticleAdapter):
     @staticmethod
     def resolve_backend(backend):
         return "cpu"
-
-    @staticmethod
-    def instability_errors():
-        return (solvers.RunInstability,)
 
     @staticmethod
     def preflight(spec):

@@ -34,6 +34,8 @@ import jinja2
 import numpy as np
 import pandas as pd
 
+from bench.pareto import pareto_front
+
 from . import plots
 
 __all__ = ["build_report", "SECTIONS", "COMMANDS", "PAPER_TABLE1"]
@@ -500,7 +502,7 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
         "beaten in both wall time and error by another of its group)."))
     keys = [k for k in ("method", "mode") if k in df.columns]
     measured = df[~reference & df["error_self"].notna() & df["wall_s"].notna()]
-    fronts = [plots.pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
+    fronts = [pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
     cols = [c for c in ("method", "mode", "parameter", "value", "particles", "cells", "wall_s", "error_self",
                         "error_other") if c in df.columns]
     if fronts:
@@ -539,7 +541,7 @@ def _verdict(df: pd.DataFrame) -> str:
     for mode in ("non-adaptive", "adaptive"):
         g = df[(df["mode"] == mode) & (df["method"] == "particles")]
         if len(g.dropna(subset=["wall_s", "error_self"])):
-            fronts[mode] = plots.pareto_front(g, "wall_s", "error_self")
+            fronts[mode] = pareto_front(g, "wall_s", "error_self")
     if len(fronts) < 2:
         return ""
     level = max(f["error_self"].min() for f in fronts.values())  # an error both modes reach

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from bench import runs
+from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.scales import scale_scene
@@ -101,17 +102,6 @@ def errors(sig: dict | None, ref: dict | None) -> tuple[float, float, float]:
     profile = np.interp(ref["z"], sig["z"], sig["profile"])
     e_profile = _relative_l2(profile, ref["profile"])
     return 0.5 * (e_cover + e_profile), e_cover, e_profile
-
-
-def pareto_mask(wall: np.ndarray, error: np.ndarray) -> np.ndarray:
-    """True where no other point has wall <= and error <= with one strictly smaller (NaN: False)."""
-    ok = np.isfinite(wall) & np.isfinite(error)
-    out = np.zeros(len(wall), dtype=bool)
-    for i in np.flatnonzero(ok):
-        better_eq = ok & (wall <= wall[i]) & (error <= error[i])
-        strictly = (wall < wall[i]) | (error < error[i])
-        out[i] = not np.any(better_eq & strictly)
-    return out
 
 
 def verdict(frame: pd.DataFrame) -> dict:
