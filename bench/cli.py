@@ -542,7 +542,7 @@ def pbf_scaling_cmd(
     iterations: Annotated[int, typer.Option(min=1, max=200, help="PBF solver iterations")] = 4,
     scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
     backend: BackendOpt = Backend.auto,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/pbf_scaling.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/pbf_scaling.csv"),
     runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """ms per particle step at the given sizes, one CSV (the GPU benchmark form of `scaling`)."""
@@ -565,7 +565,7 @@ def grid_scaling_cmd(
     devices: Annotated[str, typer.Option(help="all, cpu, gpu or cpu,gpu")] = "all",
     dtypes: Annotated[Optional[str], typer.Option(
         help="float32 and/or float64, comma-separated (default: float64 on the CPU, float32 on the GPU)")] = None,
-    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/grid_scaling.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/data/grid_scaling.csv"),
     commit: Annotated[Optional[str], typer.Option(help="commit to record (default: git rev-parse --short HEAD)")] = None,
 ) -> None:
     """ms per grid-baseline step at n^3 cells on the CPU and the GPU (appends to one CSV)."""

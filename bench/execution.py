@@ -40,7 +40,7 @@ from typing import Callable
 import numpy as np
 
 from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_params
-from bench.store.files import save_npz, sha256_file, write_csv, write_parquet
+from bench.store.files import save_frame, save_npz, sha256_file
 from bench.store.identity import RUN_FORMAT, RunSpec
 from bench.store.lock import locked
 from bench.store.manifest import finished_files, info_checksum, manifest, now, quarantine, verify_run
@@ -273,14 +273,14 @@ class _Run:
                 wall) -> RunResult:
         import pandas as pd
         spec = self.spec
-        write_csv(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
+        save_frame(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
                                columns=["phase", "total_ms", "count", "mean_ms"]), self.dir / "timings.csv")
         if self.rows:
-            write_parquet(pd.DataFrame(self.rows), self.dir / "stats.parquet")
+            save_frame(pd.DataFrame(self.rows), self.dir / "stats.parquet")
         if self.profile_rows:
-            write_parquet(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
+            save_frame(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
         if self.step_rows:
-            write_csv(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
+            save_frame(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
         from bench.environment import device_description
         backend = getattr(sim, "backend", None) or self.identity["backend"]
         info = {

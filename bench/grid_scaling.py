@@ -1,6 +1,6 @@
 """Grid baseline scaling: ms per step at n^3 cells, on the CPU and on the GPU, through jax.
 
-    cloudpbf grid-scaling --sizes 32,64,128 --steps 20 --out reports/gpu/grid_scaling.csv
+    cloudpbf grid-scaling --sizes 32,64,128 --steps 20 --out reports/gpu/data/grid_scaling.csv
 
 Each (size, device, dtype) runs the scene (default ``growing``, its physics and dt) on an n x n x n grid
 from its initial state: compile (not timed), ``--warmup`` steps, then ``--steps`` timed steps of the fused,
@@ -91,7 +91,7 @@ def append_rows(path: Path, rows) -> None:
 
 
 def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
-                     out="reports/gpu/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
+                     out="reports/gpu/data/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
     """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
     from pbf_cuda.scene import load_scene
     if steps < 1:

@@ -503,7 +503,7 @@ def test_stale_temp_files_are_removed_and_files_have_one_mode(toy_solver, tmp_pa
              if p.is_file() and p.name not in ("log.txt", ".lock")}
     assert modes and all(m == want for m in modes.values()), modes
     # the same helper (and mode) for checkpoints, study frames and the report
-    from bench.statistics import save_frame
+    from bench.store.files import save_frame
     files.atomic_savez(tmp_path / "c.npz", {"a": 1}, x=np.arange(3))
     save_frame(pd.DataFrame({"a": [1]}), tmp_path / "f.csv")
     for p in (tmp_path / "c.npz", tmp_path / "f.csv"):

@@ -219,11 +219,11 @@ def test_broken_input_shows_an_error_in_its_section_only(tmp_path, full_report):
     assert "could not build" not in sections["sweep"]
 
 
-def test_gpu_reference_layout_is_read_from_the_directory_itself(tmp_path):
+def test_gpu_reference_layout_is_read_from_its_data_folder(tmp_path):
     out = tmp_path / "gpu"
-    out.mkdir()
+    (out / "data").mkdir(parents=True)
     pd.DataFrame({"cells": [32**3, 64**3], "step_ms": [1.0, 6.0], "dtype": "float32", "device": "NVIDIA H100",
-                  "commit": COMMIT}).to_csv(out / "grid_scaling.csv", index=False)
+                  "commit": COMMIT}).to_csv(out / "data" / "grid_scaling.csv", index=False)
     sections = _sections(build_report(out).read_text())
     assert "NVIDIA H100" in sections["scaling"] and "data:image/png" in sections["scaling"]
 

@@ -18,9 +18,6 @@ produces it; nothing is ever filled in.
     OUT/data/stress.csv              parameter,value,stable,reason,step,particles,max_speed,density_error_mean
     OUT/data/renders/*.png           clouds_particles, clouds_volume, figure1_unsmoothed, figure1_smoothed,
                                      figure3_shape_energy (NAME.unavailable.txt: why a render is missing)
-
-A CSV not found in ``OUT/data`` is also looked for in ``OUT`` itself (the layout of
-the committed GPU reference results, e.g. ``reports/gpu/pbf_scaling.csv``).
 """
 from __future__ import annotations
 
@@ -103,7 +100,7 @@ class Section:
 
 
 class Inputs:
-    """Reads OUT/data: CSVs (with the OUT/ fallback), environment.json and renders."""
+    """Reads OUT/data: CSVs, environment.json and renders."""
 
     def __init__(self, out_dir: Path):
         self.out = Path(out_dir)
@@ -113,12 +110,8 @@ class Inputs:
 
     def csv(self, name: str) -> tuple[pd.DataFrame | None, Path | None]:
         if name not in self._cache:
-            found = None
-            for candidate in (self.data / f"{name}.csv", self.out / f"{name}.csv"):
-                if candidate.is_file():
-                    found = candidate
-                    break
-            if found is None:
+            found = self.data / f"{name}.csv"
+            if not found.is_file():
                 self._cache[name] = (None, None)
             else:
                 df = pd.read_csv(found)

@@ -8,20 +8,21 @@ import numpy as np
 
 from pbf_cuda.files import atomic_path
 
-__all__ = ["write_csv", "write_parquet", "save_npz", "sha256_file"]
+__all__ = ["save_frame", "save_npz", "sha256_file"]
 
 
-def write_csv(frame, path: str | Path) -> Path:
-    """Write a pandas DataFrame as CSV atomically (no index)."""
+def save_frame(frame, path: str | Path) -> Path:
+    """Write a pandas DataFrame to ``.csv`` or ``.parquet`` (by suffix, no index) atomically; returns the path."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".csv", ".parquet"):
+        raise ValueError(f"{path}: expected a .csv or .parquet file name")
     with atomic_path(path) as tmp:
-        frame.to_csv(tmp, index=False)
-    return Path(path)
-
-
-def write_parquet(frame, path: str | Path) -> Path:
-    with atomic_path(path) as tmp:
-        frame.to_parquet(tmp, index=False)
-    return Path(path)
+        if suffix == ".csv":
+            frame.to_csv(tmp, index=False)
+        else:
+            frame.to_parquet(tmp, index=False)
+    return path
 
 
 def save_npz(path: Path, arrays: dict) -> None:

@@ -7,7 +7,7 @@ update) and ``neighbors_ms`` / ``solver_ms`` its sub-timers, each a mean over th
 Grid: the same scene on n^3 cells, per dtype, measured by bench.grid_scaling (``step_ms`` is the
 grid's own mean step time, compiled before the clock starts).
 
-    cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/pbf_scaling.csv
+    cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/data/pbf_scaling.csv
 
 writes particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit (then pbf_ms, backend,
 scene, steps, stable, reason, run_dir) to --out.  Particle runs go through the run cache, so a rerun
