@@ -60,6 +60,11 @@ class SolverAdapter:
     modules: tuple = ()          # the modules whose sources (and imports) decide a result (code_version)
 
     @staticmethod
+    def options(spec) -> dict:
+        """The spec's options that only this solver reads (they enter the run's key)."""
+        return {}
+
+    @staticmethod
     def expected_scene(spec):
         """The scene a checkpoint of this spec must hold (None: not checked)."""
         return None
@@ -205,6 +210,11 @@ class GridAdapter(SolverAdapter):
                 raise SceneError(f"{spec.scene.name}: a grid of {cells:,} cells ({shape[0]} x {shape[1]} x "
                                  f"{shape[2]}) needs about {need / 2**30:.2f} GiB, {avail / 2**30:.2f} GiB "
                                  f"available; raise particles.spacing or lower cells_per_spacing")
+
+    @staticmethod
+    def options(spec) -> dict:
+        return {"cells_per_spacing": float(spec.cells_per_spacing),
+                "resolution": list(spec.resolution) if spec.resolution else None, "dtype": spec.dtype}
 
     @staticmethod
     def create(spec):

@@ -229,10 +229,7 @@ class RunSpec:
                "record_steps": self.record_steps, "diagnostics": self.diagnostics,
                "warmup_steps": self.warmup_steps,
                "diagnostics_resolution": list(self.diagnostics_resolution) if self.diagnostics_resolution else None}
-        if self.solver == "grid":
-            out.update(cells_per_spacing=float(self.cells_per_spacing),
-                       resolution=list(self.resolution) if self.resolution else None, dtype=self.dtype)
-        return out
+        return {**out, **ADAPTERS[self.solver].options(self)}
 
     def identity(self) -> dict:
         """All that is hashed into the key (the checkpoint interval is not: it does not change results)."""
