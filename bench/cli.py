@@ -431,16 +431,18 @@ def demo(
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
     quiet: QuietOpt = False,
     only: Annotated[Optional[str], typer.Option(
-        help="comma-separated subset of: table1, scaling, compare, sweep, stress, renders")] = None,
+        help="comma-separated subset of the demo's studies (those of bench.studies.registry; an unknown "
+             "name lists them)")] = None,
 ) -> None:
     """Everything: environment, Table 1, scaling, compare, sweep, stress, renders, then the report.
 
     Prints the path of index.html.  Exit code 1 when a study failed (the report shows which)."""
-    from bench.studies.demo import STUDIES, run_demo
-    chosen = tuple(s.strip() for s in only.split(",") if s.strip()) if only else STUDIES
-    bad = [s for s in chosen if s not in STUDIES]
+    from bench.studies.demo import run_demo, study_names
+    studies = study_names()
+    chosen = tuple(s.strip() for s in only.split(",") if s.strip()) if only else studies
+    bad = [s for s in chosen if s not in studies]
     if bad:
-        raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(STUDIES)}", param_hint="'--only'")
+        raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(studies)}", param_hint="'--only'")
     with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
         with _refusals():
             index, status = run_demo(ctx, only=chosen)

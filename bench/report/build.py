@@ -625,14 +625,15 @@ def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
     ])
 
 
-STUDY_OF_SECTION = {"table1": "table1", "phases": "table1", "scaling": "scaling", "adaptive": "compare",
-                    "compare": "compare", "sweep": "sweep", "stress": "stress", "renders": "renders",
-                    "figure1": "renders", "figure3": "renders"}
-"""Which study (a key of demo_status.json) writes the inputs of each section."""
+def study_of_section() -> dict:
+    """Which demo study (a key of demo_status.json) writes the inputs of each section (as each study
+    declares in bench.studies.registry)."""
+    from bench.studies.registry import demo_studies
+    return {section: s.name for s in demo_studies() for section in s.sections}
 
 
 def _study_failure(status: dict, section_id: str) -> str:
-    study = STUDY_OF_SECTION.get(section_id)
+    study = study_of_section().get(section_id)
     entry = status.get(study) if study else None
     if not isinstance(entry, dict) or entry.get("ok", True):
         return ""

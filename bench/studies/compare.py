@@ -20,6 +20,7 @@ import pandas as pd
 from bench import runs
 from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 
@@ -110,3 +111,8 @@ def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | Non
     for name, frame in out.items():
         runs.write_csv(frame, ctx.data / f"{name}.csv")
     return out
+
+
+register(Study("compare", order=30, run=lambda ctx, scene: run_compare(ctx, scene), sections=("adaptive", "compare"),
+                outputs=("compare_timeseries.csv", "compare_profiles.csv", "compare_runs.csv"),
+                scale={"seeds": {"smoke": 5, "cpu": 5, "gpu": 5}}))      # noise seeds per mode

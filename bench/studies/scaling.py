@@ -22,6 +22,7 @@ import pandas as pd
 
 from bench import runs
 from bench import environment
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 SCENE = "growing"
@@ -94,3 +95,11 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+register(Study("scaling", order=20, run=lambda ctx, scene: run_scaling(ctx), sections=("scaling",),
+                outputs=("pbf_scaling.csv", "grid_scaling.csv"),
+                scale={"scaling_particles": {"smoke": (2000, 8000), "cpu": (10_000, 50_000, 250_000),
+                                             "gpu": (250_000, 1_000_000, 4_000_000)},
+                       "scaling_grid_cells": {"smoke": (12, 20), "cpu": (16, 32, 48), "gpu": (32, 64, 96)},  # n^3
+                       "timing_steps": {"smoke": 5, "cpu": 10, "gpu": 20}}))   # timed steps after 2 warm-up steps

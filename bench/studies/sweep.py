@@ -32,6 +32,7 @@ from bench import runs
 from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -175,3 +176,15 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
     runs.write_csv(frame, ctx.data / "sweep.csv")
     runs.atomic_write_json(ctx.data / "sweep_verdict.json", {**verdict(frame), "commit": ctx.commit})
     return frame
+
+
+register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
+                outputs=("sweep.csv", "sweep_verdict.json"),
+                scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
+                       # threshold alpha at the middle spacing; grid cells along the longest axis
+                       "sweep_particles": {"smoke": (2000, 3000, 5000), "cpu": (12_500, 25_000, 50_000, 100_000),
+                                           "gpu": (100_000, 250_000, 840_000, 2_000_000)},
+                       "sweep_iterations": {"smoke": (2, 8), "cpu": (1, 2, 8, 16), "gpu": (1, 2, 8, 16)},
+                       "sweep_split_thresholds": {"smoke": (0.15, 0.6), "cpu": (0.1, 0.2, 0.5, 1.0),
+                                                  "gpu": (0.1, 0.2, 0.5, 1.0)},
+                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}}))

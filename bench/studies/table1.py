@@ -23,6 +23,7 @@ import pandas as pd
 
 from bench import runs
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -82,3 +83,7 @@ def run_table1(ctx: StudyContext) -> pd.DataFrame:
     frame = pd.DataFrame([table1_row(meta, spec, res, ctx) for meta, spec, res in zip(ROWS, specs, results)])
     runs.write_csv(frame, ctx.data / "table1.csv")
     return frame
+
+
+register(Study("table1", order=10, run=lambda ctx, scene: run_table1(ctx), sections=("table1", "phases"),
+                outputs=("table1.csv",)))
