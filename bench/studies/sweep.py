@@ -27,8 +27,11 @@ import math
 
 import numpy as np
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
@@ -178,6 +181,20 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
     return frame
 
 
+def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+                  backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+                  quiet: QuietOpt = False) -> None:
+    """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
+    import json
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with refusals():
+            frame = run_sweep(ctx)
+    typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
+               .to_string(index=False))
+    typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
+    typer.echo(f"wrote {ctx.data / 'sweep.csv'}")
+
+
 register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
                 outputs=("sweep.csv", "sweep_verdict.json"),
                 scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
@@ -187,4 +204,5 @@ register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), 
                        "sweep_iterations": {"smoke": (2, 8), "cpu": (1, 2, 8, 16), "gpu": (1, 2, 8, 16)},
                        "sweep_split_thresholds": {"smoke": (0.15, 0.6), "cpu": (0.1, 0.2, 0.5, 1.0),
                                                   "gpu": (0.1, 0.2, 0.5, 1.0)},
-                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}}))
+                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}},
+                command=sweep_command))
