@@ -32,7 +32,8 @@ import typer
 
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
-                              parse_overrides, parse_sizes, refusals, scene_arg, study_context)
+                              parse_overrides, refusals, scene_arg, study_context)
+from bench.grid_scaling import grid_scaling_command
 
 app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   rich_markup_mode=None,
@@ -213,31 +214,7 @@ def export(
     typer.echo(f"wrote {path}")
 
 
-@app.command("grid-scaling")
-def grid_scaling_cmd(
-    sizes: Annotated[str, typer.Option(help="cells per axis of n^3 grids, comma-separated")] = "32,64,128",
-    steps: Annotated[int, typer.Option(min=1, max=100_000, help="timed steps per size")] = 20,
-    warmup: Annotated[int, typer.Option(min=0, max=1000, help="untimed steps after compilation")] = 2,
-    scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
-    devices: Annotated[str, typer.Option(help="all, cpu, gpu or cpu,gpu")] = "all",
-    dtypes: Annotated[Optional[str], typer.Option(
-        help="float32 and/or float64, comma-separated (default: float64 on the CPU, float32 on the GPU)")] = None,
-    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/data/grid_scaling.csv"),
-    commit: Annotated[Optional[str], typer.Option(help="commit to record (default: git rev-parse --short HEAD)")] = None,
-) -> None:
-    """ms per grid-baseline step at n^3 cells on the CPU and the GPU (appends to one CSV)."""
-    from bench import grid_scaling as gs
-    cells = parse_sizes(sizes, "--sizes", 2)
-    kinds = parse_list(dtypes, "--dtypes", str, example="float32,float64")
-    bad = [d for d in kinds or [] if d not in ("float32", "float64")]
-    if bad:
-        raise typer.BadParameter(f"'{bad[0]}': allowed float32, float64", param_hint="'--dtypes'")
-    scene_arg(scene)
-    try:
-        gs.run_grid_scaling(cells, steps=steps, warmup=warmup, scene=scene, devices=devices, dtypes=kinds,
-                            out=out, commit=commit, echo=typer.echo)
-    except ValueError as exc:
-        raise click.UsageError(str(exc)) from None
+app.command("grid-scaling")(grid_scaling_command)
 
 
 def main(argv: list[str] | None = None) -> int:
