@@ -14,7 +14,6 @@ from pbf_cuda.protocol import InstabilityError
 
 __all__ = ["ADAPTERS", "SOLVERS", "SolverAdapter", "ParticleAdapter", "GridAdapter", "InstabilityError", "flatten"]
 
-SOLVERS = ("particles", "grid")
 STATS_VECTOR_AXES = "xyz"
 GRID_BYTES_PER_CELL = 800    # fields, auxiliaries and jit buffers of the grid baseline in float64
 
@@ -255,3 +254,4 @@ class GridAdapter(SolverAdapter):
 
 
 ADAPTERS = {"particles": ParticleAdapter, "grid": GridAdapter}
+SOLVERS = tuple(ADAPTERS)
