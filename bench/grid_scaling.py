@@ -1,6 +1,6 @@
 """Grid baseline scaling: ms per step at n^3 cells, on the CPU and on the GPU, through jax.
 
-    cloudpbf grid-scaling --sizes 32,64,128 --steps 20 --out reports/gpu/grid_scaling.csv
+    cloudpbf grid-scaling --sizes 32,64,128 --steps 20 --out reports/gpu/data/grid_scaling.csv
 
 Each (size, device, dtype) runs the scene (default ``growing``, its physics and dt) on an n x n x n grid
 from its initial state: compile (not timed), ``--warmup`` steps, then ``--steps`` timed steps of the fused,
@@ -16,6 +16,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from bench.cli_common import click, parse_list, parse_sizes, run_command, scene_arg
 
 COLUMNS = ("cells", "step_ms", "dtype", "device", "commit")
 ROOT = Path(__file__).resolve().parent.parent
@@ -91,9 +96,9 @@ def append_rows(path: Path, rows) -> None:
 
 
 def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
-                     out="reports/gpu/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
+                     out="reports/gpu/data/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
     """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
-    from grid_baseline._pbf import load_scene
+    from pbf_cuda.scene import load_scene
     if steps < 1:
         raise ValueError("--steps must be >= 1")
     scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene
@@ -114,10 +119,34 @@ def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", d
     return rows
 
 
+def grid_scaling_command(
+    sizes: Annotated[str, typer.Option(help="cells per axis of n^3 grids, comma-separated")] = "32,64,128",
+    steps: Annotated[int, typer.Option(min=1, max=100_000, help="timed steps per size")] = 20,
+    warmup: Annotated[int, typer.Option(min=0, max=1000, help="untimed steps after compilation")] = 2,
+    scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
+    devices: Annotated[str, typer.Option(help="all, cpu, gpu or cpu,gpu")] = "all",
+    dtypes: Annotated[Optional[str], typer.Option(
+        help="float32 and/or float64, comma-separated (default: float64 on the CPU, float32 on the GPU)")] = None,
+    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/data/grid_scaling.csv"),
+    commit: Annotated[Optional[str], typer.Option(help="commit to record (default: git rev-parse --short HEAD)")] = None,
+) -> None:
+    """ms per grid-baseline step at n^3 cells on the CPU and the GPU (appends to one CSV)."""
+    cells = parse_sizes(sizes, "--sizes", 2)
+    kinds = parse_list(dtypes, "--dtypes", str, example="float32,float64")
+    bad = [d for d in kinds or [] if d not in ("float32", "float64")]
+    if bad:
+        raise typer.BadParameter(f"'{bad[0]}': allowed float32, float64", param_hint="'--dtypes'")
+    scene_arg(scene)
+    try:
+        run_grid_scaling(cells, steps=steps, warmup=warmup, scene=scene, devices=devices, dtypes=kinds,
+                         out=out, commit=commit, echo=typer.echo)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+
+
 def main(argv=None) -> int:
     """``python -m bench.grid_scaling ARGS`` is ``cloudpbf grid-scaling ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["grid-scaling", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(grid_scaling_command, "grid-scaling", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

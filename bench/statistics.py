@@ -16,14 +16,13 @@ Conventions (the project's, see docs/design.md):
 * a cell is *cloudy* when ``w > threshold`` (default 1e-5 kg/kg).
 
 Results are plain dicts (one row per snapshot) and pandas DataFrames, written
-to CSV or Parquet with :func:`save_frame`.
+to CSV or Parquet with :func:`bench.store.files.save_frame`.
 """
 from __future__ import annotations
 
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -56,7 +55,6 @@ __all__ = [
     "timeseries_frame",
     "onset_time",
     "onset_times",
-    "save_frame",
 ]
 
 CLOUD_THRESHOLD = 1e-5
@@ -601,18 +599,3 @@ def onset_times(df: pd.DataFrame, by: Sequence[str] = ("solver", "mode", "seed")
         key = key if isinstance(key, tuple) else (key,)
         rows.append({**dict(zip(by, key)), "onset_s": onset_time(group, cover_column, time_column)})
     return pd.DataFrame(rows)
-
-
-def save_frame(df: pd.DataFrame, path) -> Path:
-    """Write a DataFrame to ``.csv`` or ``.parquet`` (by suffix) atomically; returns the path."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in (".csv", ".parquet"):
-        raise ValueError(f"{path}: expected a .csv or .parquet file name")
-    from pbf_cuda.files import atomic_path
-    with atomic_path(path) as tmp:
-        if suffix == ".csv":
-            df.to_csv(tmp, index=False)
-        else:
-            df.to_parquet(tmp, index=False)
-    return path

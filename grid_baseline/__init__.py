@@ -7,6 +7,8 @@
 See grid_baseline/README.md.  Modules: compat (jax-cfd shims), noise (simplex noise in jax),
 projection (exact FFT/DCT pressure projection), model (the step), simulation (the API).
 """
-from .simulation import GridInstabilityError, GridSimulation, grid_shape
+from pbf_cuda.protocol import InstabilityError
 
-__all__ = ["GridSimulation", "GridInstabilityError", "grid_shape"]
+from .simulation import GridSimulation, grid_shape
+
+__all__ = ["GridSimulation", "InstabilityError", "grid_shape"]

@@ -36,23 +36,20 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
-from . import _pbf
+from pbf_cuda.export import fields_to_xarray
+from pbf_cuda.files import atomic_savez
+from pbf_cuda.noise import noise_offset_for_seed
+from pbf_cuda.protocol import InstabilityError
+from pbf_cuda.scene import Scene, SceneError, load_scene, scene_from_dict
+
 from .model import (BUDGET_TERMS, STATE_KEYS, advect, budget_terms, cell_centers, initial_state, make_aux,
                     params_from_scene, physics, pressure_project, step_with_budget)
 from .projection import _lower_face, relative_divergence
 
-__all__ = ["GridSimulation", "GridInstabilityError", "grid_shape", "PHASES"]
+__all__ = ["GridSimulation", "InstabilityError", "grid_shape", "PHASES"]
 
 PHASES = ("advection", "physics", "projection")
 SNAPSHOT_VERSION = 1
-
-
-class GridInstabilityError(RuntimeError):
-    """NaN/Inf or a speed above pbf.max_velocity. Attributes: step, reason, last_good_step."""
-
-    def __init__(self, step: int, reason: str, last_good_step: int):
-        self.step, self.reason, self.last_good_step = int(step), reason, int(last_good_step)
-        super().__init__(f"grid unstable at step {step}: {reason}; last good step {last_good_step}")
 
 
 def grid_shape(scene, cells_per_spacing: float = 1.0, resolution=None) -> tuple:
@@ -103,14 +100,14 @@ class GridSimulation:
     def __init__(self, scene, seed: int | None = None, cells_per_spacing: float = 1.0, resolution=None,
                  dtype=None, device=None, timing: str = "fused", check_every: int | None = None,
                  cfl_target: float = 0.8, max_substeps: int = 16):
-        if not _pbf.is_scene(scene):
-            scene = _pbf.load_scene(scene)
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
         if scene.atmosphere is None:
-            raise _pbf.SceneError(f"{scene.name}: the grid baseline runs cloud scenes; this scene has no "
-                                  f"[atmosphere] section")
+            raise SceneError(f"{scene.name}: the grid baseline runs cloud scenes; this scene has no "
+                             f"[atmosphere] section")
         if seed is not None:
             scene = scene.replace(**{"particles.seed": int(seed),
-                                     "atmosphere.noise_offset": _pbf.noise_offset_for_seed(seed)})
+                                     "atmosphere.noise_offset": noise_offset_for_seed(seed)})
         if timing not in ("fused", "phases"):
             raise ValueError(f"timing = {timing!r}: allowed 'fused', 'phases'")
         self.scene = scene
@@ -142,7 +139,7 @@ class GridSimulation:
 
     # ---- stepping ----------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
-        """Advance n steps. Raises GridInstabilityError (the state then holds the failing step)."""
+        """Advance n steps. Raises InstabilityError (the state then holds the failing step)."""
         if n < 0:
             raise ValueError(f"n = {n}: must be >= 0")
         if n == 0:
@@ -213,14 +210,14 @@ class GridSimulation:
             self.check()
 
     def check(self) -> None:
-        """Raise GridInstabilityError on NaN/Inf or a speed above pbf.max_velocity."""
+        """Raise InstabilityError on NaN/Inf or a speed above pbf.max_velocity."""
         finite, vmax = (np.asarray(x) for x in self._health_fn(self._state))
         if not bool(finite):
-            raise GridInstabilityError(self._step, "NaN or Inf in the state", self._last_good)
+            raise InstabilityError(self._step, "NaN or Inf in the state", (), self._last_good)
         limit = self.scene.pbf.max_velocity
         if float(vmax) > limit:
-            raise GridInstabilityError(self._step, f"speed {float(vmax):.4g} m/s above pbf.max_velocity = {limit}",
-                                       self._last_good)
+            raise InstabilityError(self._step, f"speed {float(vmax):.4g} m/s above pbf.max_velocity = {limit}",
+                                   (), self._last_good)
         self._last_good = self._step
 
     def _add_time(self, name, ms, count):
@@ -251,6 +248,11 @@ class GridSimulation:
         return int(np.prod(self.shape))
 
     @property
+    def size(self) -> int:
+        """Cells (the simulation protocol's size)."""
+        return self.n_cells
+
+    @property
     def cell_size(self) -> tuple:
         return self.params.steps
 
@@ -278,7 +280,7 @@ class GridSimulation:
         standard_name, long_name, axis), and the scalar coordinates time (s) and step.  The same
         layout as particles deposited by ``bench.export.particles_to_xarray``, so the two solvers
         compare directly in xarray.  Needs xarray (``pip install "cloudpbf[io]"``)."""
-        return _pbf.fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
+        return fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
             "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": self.scene.name,
             "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device)})
 
@@ -351,7 +353,7 @@ class GridSimulation:
         rows = [self.stats()]
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
-            self.save_snapshot(out / f"snapshot_{self._step:06d}.npz")
+            self.save(out / f"snapshot_{self._step:06d}.npz")
         end = self._step + steps
         while self._step < end:
             marks = [end]
@@ -365,13 +367,13 @@ class GridSimulation:
                 if progress is not None:
                     progress(rows[-1])
             if out is not None and snap > 0 and self._step % snap == 0:
-                self.save_snapshot(out / f"snapshot_{self._step:06d}.npz")
+                self.save(out / f"snapshot_{self._step:06d}.npz")
         if out is not None:
             write_stats_csv(rows, out / "stats.csv")
             (out / "timings.json").write_text(json.dumps(self.timings(), indent=1))
         return rows
 
-    def save_snapshot(self, path: str | Path) -> Path:
+    def save(self, path: str | Path) -> Path:
         """Write fields() (float32) and the raw state (model dtype) with metadata to an npz, atomically."""
         path = Path(path)
         f = self.fields()
@@ -382,17 +384,17 @@ class GridSimulation:
                 "dtype": jnp.dtype(self.dtype).name, "device": device_kind(self.device),
                 "cfl_target": self.params.cfl_target, "max_substeps": self.params.max_substeps,
                 "budget_totals": [float(x) for x in np.asarray(self._budget_totals, dtype=np.float64)]}
-        return _pbf.atomic_savez(path, meta, **arrays)
+        return atomic_savez(path, meta, **arrays)
 
     @classmethod
-    def load_snapshot(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":
-        """Restore a run from save_snapshot() (bit-exact when dtype and device kind match)."""
+    def load(cls, path: str | Path, device=None, dtype=None, timing: str = "fused") -> "GridSimulation":
+        """Restore a run from save() (bit-exact when dtype and device kind match)."""
         with np.load(Path(path)) as z:
             meta = json.loads(bytes(z["meta"]).decode())
             if meta.get("version") != SNAPSHOT_VERSION:
                 raise ValueError(f"{path}: snapshot version {meta.get('version')} != {SNAPSHOT_VERSION}")
             raw = {k: z[f"raw_{k}"] for k in STATE_KEYS}
-        scene = _pbf.scene_from_dict(meta["scene"], source=str(path))
+        scene = scene_from_dict(meta["scene"], source=str(path))
         sim = cls(scene, resolution=meta["shape"], dtype=dtype or meta["dtype"], device=device, timing=timing,
                   cfl_target=meta["cfl_target"], max_substeps=meta["max_substeps"])
         sim._state = jax.device_put({k: jnp.asarray(v, dtype=sim.dtype) for k, v in raw.items()}, sim.device)

@@ -27,6 +27,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from .files import atomic_path, atomic_write_text
+
 __all__ = ["PARTICLE_UNITS", "FIELD_ATTRS", "COORD_ATTRS", "state_to_pyvista", "write_pvd",
            "write_particle_series", "read_pvd", "fields_to_xarray", "CONVENTIONS"]
 
@@ -119,10 +121,7 @@ def write_pvd(entries: Iterable[tuple[float, str | Path]], path: str | Path) -> 
         rel = os.path.relpath(Path(file).resolve(), path.parent.resolve())
         lines.append(f'    <DataSet timestep="{float(time)!r}" group="" part="0" file={quoteattr(rel)}/>')
     lines += ["  </Collection>", "</VTKFile>", ""]
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, "\n".join(lines))
 
 
 def read_pvd(path: str | Path) -> list[tuple[float, Path]]:
@@ -150,9 +149,8 @@ def write_particle_series(frames: Iterable[Mapping[str, np.ndarray]], out_dir: s
         mesh = state_to_pyvista(frame, "polydata" if fmt == "vtp" else "unstructured", time=time, step=step,
                                 scene_name=scene_name)
         file = out / f"{name}_{step:06d}.{fmt}"
-        tmp = file.with_name(f".{file.stem}.tmp.{fmt}")
-        mesh.save(tmp)
-        os.replace(tmp, file)
+        with atomic_path(file, keep_suffix=True) as tmp:      # pyvista picks the format from the suffix
+            mesh.save(tmp)
         entries.append((time, file))
     return write_pvd(entries, out / f"{name}.pvd")
 

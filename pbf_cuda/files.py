@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FILE_MODE", "atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_savez", "read_meta",
+__all__ = ["FILE_MODE", "atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_json", "json_default",
+           "atomic_savez", "read_meta",
            "fsync_dir", "remove_stale_temps", "is_temp"]
 
 FILE_MODE = 0o666          # less the umask: the mode of every file this project writes
-_TEMP = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{12}\.tmp$")
+_TEMP = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{12}\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 def fsync_dir(directory: str | Path) -> None:
@@ -45,12 +46,13 @@ def _fsync_file(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path):
+def atomic_path(path: str | Path, keep_suffix: bool = False):
     """Yield a temporary path beside `path`; write it, and on success it replaces `path`
-    (fsync of the file, os.replace, fsync of the folder).  On failure the temporary file is removed."""
+    (fsync of the file, os.replace, fsync of the folder).  On failure the temporary file is removed.
+    keep_suffix: the temporary name ends in `path`'s suffix too (for writers that pick the format from it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp"
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp{path.suffix if keep_suffix else ''}"
     os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, FILE_MODE))
     try:
         yield tmp
@@ -72,6 +74,24 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode())
+
+
+def json_default(value):
+    """numpy scalars and arrays and paths as JSON."""
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def atomic_write_json(path: str | Path, obj, sort_keys: bool = True) -> Path:
+    """`obj` as indented JSON (numpy scalars and arrays, paths allowed), atomically."""
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=sort_keys, default=json_default) + "\n")
 
 
 def atomic_savez(path: str | Path, meta: dict, **arrays) -> Path:
@@ -113,7 +133,7 @@ def remove_stale_temps(directory: str | Path, recursive: bool = True, min_age_s:
         return []
     removed = []
     now = time.time()
-    for p in (directory.rglob(".*.tmp") if recursive else directory.glob(".*.tmp")):
+    for p in (directory.rglob(".*.tmp*") if recursive else directory.glob(".*.tmp*")):
         m = _TEMP.match(p.name)
         if not m or not p.is_file():
             continue

@@ -1,9 +1,10 @@
 """2D simplex noise (Gustavson, "Simplex noise demystified", 2005), float64 numpy.
 
-The reference for the ground-heating pattern of eq. 5.  The solver's C++ version
-(`csrc/noise.h`) and the grid baseline's jax version implement the same
-algorithm with the same permutation table; all three are checked against the
-committed table `tests/data/noise_reference.csv`.
+The reference for the ground-heating pattern of eq. 5, and the one Python implementation of the
+algorithm: :func:`lattice` and :func:`simplex_kernel` take the array namespace, so the grid
+baseline runs the same code in jax.  The solver's C++ version (`csrc/noise.h`) implements the
+same algorithm with the same permutation table; both are checked against the committed table
+`tests/data/noise_reference.csv`.
 
 Output range is about [-1, 1].
 """
@@ -26,42 +27,55 @@ PERMUTATION = np.array([
     107, 49, 192, 214, 31, 181, 199, 106, 157, 184, 84, 204, 176, 115, 121, 50, 45, 127, 4, 150, 254,
     138, 236, 205, 93, 222, 114, 67, 29, 24, 72, 243, 141, 128, 195, 78, 66, 215, 61, 156, 180,
 ], dtype=np.int64)
-PERM = np.concatenate([PERMUTATION, PERMUTATION])
+PERM = np.concatenate([PERMUTATION, PERMUTATION]).astype(np.int32)
 GRAD2 = np.array([[1, 1], [-1, 1], [1, -1], [-1, -1], [1, 0], [-1, 0], [1, 0], [-1, 0],
                   [0, 1], [0, -1], [0, 1], [0, -1]], dtype=np.float64)
 F2 = 0.5 * (np.sqrt(3.0) - 1.0)
 G2 = (3.0 - np.sqrt(3.0)) / 6.0
 
 
-def _corner(gi, x, y):
+def lattice(x, y, xp=np, index_dtype=np.int64):
+    """The simplex cell of (x, y): lattice indices (ii, jj) (& 255, of `index_dtype`) and the in-cell
+    offsets (x0, y0), in the floating dtype of x.  `xp`: the array namespace (numpy, or jax.numpy for
+    the grid baseline: then floor values fit int32 for |x| < 2^31, and & 255 on two's complement
+    matches numpy's int64 & 255)."""
+    dt = x.dtype
+    s = (x + y) * xp.asarray(F2, dtype=dt)
+    i = xp.floor(x + s)
+    j = xp.floor(y + s)
+    t = (i + j) * xp.asarray(G2, dtype=dt)
+    return i.astype(index_dtype) & 255, j.astype(index_dtype) & 255, x - (i - t), y - (j - t)
+
+
+def _corner(gi, x, y, xp):
+    g = xp.asarray(GRAD2, dtype=x.dtype)[gi]
     t = 0.5 - x * x - y * y
-    g = GRAD2[gi]
-    contrib = t ** 4 * (g[..., 0] * x + g[..., 1] * y)
-    return np.where(t < 0.0, 0.0, contrib)
+    t2 = t * t
+    contrib = t2 * t2 * (g[..., 0] * x + g[..., 1] * y)
+    return xp.where(t < 0.0, xp.zeros_like(contrib), contrib)
+
+
+def simplex_kernel(ii, jj, x0, y0, xp=np):
+    """Noise from the lattice cell (ii, jj) (ints, already & 255) and the in-cell offsets x0, y0, in
+    their dtype; `xp` as in :func:`lattice`.  The one implementation of the algorithm in Python."""
+    dt = x0.dtype
+    perm = xp.asarray(PERM)
+    g2 = xp.asarray(G2, dtype=dt)
+    i1 = (x0 > y0).astype(xp.int32)
+    j1 = 1 - i1
+    x1 = x0 - i1.astype(dt) + g2
+    y1 = y0 - j1.astype(dt) + g2
+    x2 = x0 - 1.0 + 2.0 * g2
+    y2 = y0 - 1.0 + 2.0 * g2
+    gi0 = perm[ii + perm[jj]] % 12
+    gi1 = perm[ii + i1 + perm[jj + j1]] % 12
+    gi2 = perm[ii + 1 + perm[jj + 1]] % 12
+    return 70.0 * (_corner(gi0, x0, y0, xp) + _corner(gi1, x1, y1, xp) + _corner(gi2, x2, y2, xp))
 
 
 def simplex2(x, y):
-    """Simplex noise at (x, y) (noise units), vectorised over arrays."""
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    s = (x + y) * F2
-    i = np.floor(x + s)
-    j = np.floor(y + s)
-    t = (i + j) * G2
-    x0 = x - (i - t)
-    y0 = y - (j - t)
-    i1 = (x0 > y0).astype(np.int64)
-    j1 = 1 - i1
-    x1 = x0 - i1 + G2
-    y1 = y0 - j1 + G2
-    x2 = x0 - 1.0 + 2.0 * G2
-    y2 = y0 - 1.0 + 2.0 * G2
-    ii = i.astype(np.int64) & 255
-    jj = j.astype(np.int64) & 255
-    gi0 = PERM[ii + PERM[jj]] % 12
-    gi1 = PERM[ii + i1 + PERM[jj + j1]] % 12
-    gi2 = PERM[ii + 1 + PERM[jj + 1]] % 12
-    return 70.0 * (_corner(gi0, x0, y0) + _corner(gi1, x1, y1) + _corner(gi2, x2, y2))
+    """Simplex noise at (x, y) (noise units), float64, vectorised over arrays."""
+    return simplex_kernel(*lattice(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)))
 
 
 def heating_pattern(x, z, frequency, amplitude, offset=(0.0, 0.0)):

@@ -36,7 +36,7 @@ __all__ = [
     "list_scenes",
 ]
 
-SCENE_DIR = Path(__file__).resolve().parent.parent / "bench" / "scenes"
+SCENE_DIR = Path(__file__).resolve().parent / "scenes"        # the shipped scenes (package data)
 
 BOUNDARY_KINDS = ("periodic", "wall")
 SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
@@ -491,7 +491,7 @@ def _read_scene_file(path: Path, what: str) -> dict:
 
 
 def _shipped(name: str) -> Path | None:
-    """bench/scenes/NAME.toml when `name` is a shipped scene's name."""
+    """pbf_cuda/scenes/NAME.toml when `name` is a shipped scene's name."""
     if isinstance(name, str) and name in list_scenes():
         return SCENE_DIR / f"{name}.toml"
     return None
@@ -574,7 +574,7 @@ def read_scene_dict(name_or_path: str | Path, _seen: tuple = ()) -> dict:
 
 
 def load_scene(name_or_path: str | Path, **overrides) -> Scene:
-    """Load a scene by name (bench/scenes/NAME.toml) or path, apply dotted overrides.
+    """Load a scene by name (pbf_cuda/scenes/NAME.toml) or path, apply dotted overrides.
 
     Every failure is a SceneError naming the file, the field and what is allowed."""
     path = _resolve_path(name_or_path)

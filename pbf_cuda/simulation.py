@@ -21,30 +21,13 @@ from . import initial_state
 from .files import atomic_savez, read_meta
 from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
+from .protocol import InstabilityError
 from .memory import check_memory
 from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
 
 CHECKPOINT_VERSION = 1
-
-
-class InstabilityError(RuntimeError):
-    """The run went unstable: NaN/Inf, a velocity or a density error over its bound.
-
-    Attributes: ``step`` (the step that produced it), ``reason``, ``particles``
-    (ids of offending particles, at most 16), ``state_step`` (the last step whose
-    state passed the check; the caller's last checkpoint is at or before it).
-    """
-
-    def __init__(self, step: int, reason: str, particles, last_good_step: int):
-        self.step = int(step)
-        self.reason = reason
-        self.particles = [int(p) for p in particles]
-        self.last_good_step = int(last_good_step)
-        ids = ", ".join(map(str, self.particles[:16])) or "none identified"
-        super().__init__(f"unstable at step {self.step}: {reason}; particles (ids): {ids}; "
-                         f"last good step {self.last_good_step}")
 
 
 def _core():
@@ -321,6 +304,11 @@ class Simulation:
     @property
     def n_particles(self) -> int:
         return self._solver.size()
+
+    @property
+    def size(self) -> int:
+        """Particles (the simulation protocol's size)."""
+        return self.n_particles
 
     # ---- state -------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:

@@ -153,32 +153,32 @@ def test_console_script_points_at_the_wrapper():
 
 
 def test_run_cache_location(monkeypatch, tmp_path):
-    from bench import runs
+    from bench.store import identity
     monkeypatch.delenv("CLOUDPBF_RUNS", raising=False)
-    assert runs.is_checkout() and runs.default_root() == runs.REPO_ROOT / "runs"
+    assert identity.is_checkout() and identity.default_root() == identity.REPO_ROOT / "runs"
     fake = tmp_path / "lib" / "python3.11" / "site-packages"
     fake.mkdir(parents=True)
     (fake / "pyproject.toml").write_text("")            # even with one: site-packages is no checkout
-    monkeypatch.setattr(runs, "REPO_ROOT", fake)
-    monkeypatch.setattr(runs.is_checkout, "__defaults__", (fake,))
+    monkeypatch.setattr(identity, "REPO_ROOT", fake)
+    monkeypatch.setattr(identity.is_checkout, "__defaults__", (fake,))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    root = runs.default_root()
+    root = identity.default_root()
     assert "site-packages" not in root.parts
     assert root == tmp_path / "cache" / "cloudpbf" / "runs"
     monkeypatch.setenv("CLOUDPBF_RUNS", str(tmp_path / "mine"))
-    assert runs.default_root() == tmp_path / "mine"
+    assert identity.default_root() == tmp_path / "mine"
 
 
 @pytest.mark.parametrize("with_filelock", [True, False])
 def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock):
-    from bench import runs
+    from bench.store.lock import locked
     if not with_filelock:
         monkeypatch.setitem(sys.modules, "filelock", None)      # a bare machine: the POSIX fallback
-    assert "\nimport fcntl" not in (REPO / "bench" / "runs.py").read_text()   # not at import time (Windows)
+    assert "\nimport fcntl" not in (REPO / "bench" / "store" / "lock.py").read_text()   # not at import time (Windows)
     order = []
 
     def hold():
-        with runs._locked(tmp_path):
+        with locked(tmp_path):
             order.append("a-in")
             time.sleep(0.3)
             order.append("a-out")
@@ -186,14 +186,14 @@ def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock
     t = threading.Thread(target=hold)
     t.start()
     time.sleep(0.1)
-    with runs._locked(tmp_path):
+    with locked(tmp_path):
         order.append("b-in")
     t.join()
     assert order == ["a-in", "a-out", "b-in"]
 
 
 def test_environment_reports_the_cloudpbf_version():
-    from bench.studies.environment import versions
+    from bench.environment import versions
     assert versions()["cloudpbf"] == importlib.metadata.version("cloudpbf")
 
 
@@ -292,7 +292,7 @@ def test_the_ranges_include_the_versions_of_the_gpu_results():
 
 
 def test_environment_is_checked_against_the_lock(tmp_path):
-    from bench.studies.environment import environment, lock_check
+    from bench.environment import environment, lock_check
     lock = tmp_path / "constraints.txt"
     lock.write_text(f"# comment\nnumpy=={np.__version__}\npandas==0.0.1\nno-such-package==1.0\n")
     got = lock_check(lock)

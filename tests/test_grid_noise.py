@@ -9,7 +9,7 @@ pytest.importorskip("jax_cfd")
 import jax.numpy as jnp  # noqa: E402
 
 from grid_baseline import noise  # noqa: E402
-from grid_baseline import _pbf  # noqa: E402
+from pbf_cuda import noise as reference_noise  # noqa: E402
 
 TABLE = Path(__file__).resolve().parent / "data" / "noise_reference.csv"
 
@@ -52,14 +52,14 @@ def test_float32_matches_table(table):
 
 
 def test_same_permutation_as_particle_solver():
-    np.testing.assert_array_equal(noise.PERMUTATION, _pbf.noise_module.PERMUTATION)
+    np.testing.assert_array_equal(noise.PERMUTATION, reference_noise.PERMUTATION)
 
 
 def test_heating_pattern_matches_reference(x64):
     rng = np.random.default_rng(3)
     x = rng.uniform(0, 3200, 500)
     z = rng.uniform(0, 3200, 500)
-    ref = _pbf.noise_module.heating_pattern(x, z, 1.0 / 800.0, 1.5, offset=(17.25, 203.5))
+    ref = reference_noise.heating_pattern(x, z, 1.0 / 800.0, 1.5, offset=(17.25, 203.5))
     out = noise.heating_pattern(x, z, 1.0 / 800.0, 1.5, offset=(17.25, 203.5), dtype=jnp.float64)
     np.testing.assert_allclose(np.asarray(out), ref, rtol=0, atol=1e-12)
     assert ref.min() >= 0.0 and ref.max() > 1.5
@@ -67,4 +67,4 @@ def test_heating_pattern_matches_reference(x64):
 
 def test_seed_offsets_are_the_particle_solvers():
     for seed in (0, 1, 7, 12345):
-        assert noise.noise_offset_for_seed(seed) == _pbf.noise_offset_for_seed(seed)
+        assert noise.noise_offset_for_seed(seed) == reference_noise.noise_offset_for_seed(seed)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st  # noqa: E402
 from solver_helpers import cloud_base_of_layers, model_lcl  # noqa: E402
 
 from grid_baseline import GridSimulation  # noqa: E402
-from grid_baseline._pbf import load_scene  # noqa: E402
+from pbf_cuda.scene import load_scene  # noqa: E402
 from grid_baseline.model import params_from_scene, phase_transition  # noqa: E402
 
 

@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 
 from bench import runs
+from bench.store import identity
 from test_harness_toy import ToySimulation, toy_scene, toy_solver  # noqa: F401  (fixture)
 
 
@@ -47,11 +48,12 @@ def test_key_depends_on_what_decides_the_result(toy_solver, tmp_path, monkeypatc
     assert toy_spec(seed=2).key() != key
     assert toy_spec(steps=21).key() != key
     assert toy_spec(scene=toy_scene(**{"pbf.iterations": 5})).key() != key
-    # the code version: editing a source file of the solver gives a new key
+    # the code version: editing a source file of the solver (one its simulation module imports) gives a new key
     (tmp_path / "pbf_cuda").mkdir()
+    (tmp_path / "pbf_cuda" / "simulation.py").write_text("from .solver import a\n")
     src = tmp_path / "pbf_cuda" / "solver.py"
     src.write_text("a = 1\n")
-    monkeypatch.setattr(runs, "REPO_ROOT", tmp_path)
+    monkeypatch.setattr(identity, "REPO_ROOT", tmp_path)
     runs.code_version.cache_clear()
     before = toy_spec().key()
     src.write_text("a = 2\n")
@@ -141,7 +143,7 @@ def test_atomic_write_keeps_old_content_on_failure(tmp_path, monkeypatch):
 
     def broken_replace(src, dst):
         raise OSError("disk full")
-    monkeypatch.setattr(runs.os, "replace", broken_replace)
+    monkeypatch.setattr(os, "replace", broken_replace)
     with pytest.raises(OSError):
         runs.atomic_write_json(target, {"a": 2})
     assert json.loads(target.read_text()) == {"a": 1}
@@ -155,14 +157,14 @@ def test_failed_final_write_leaves_no_result(toy_solver, tmp_path, monkeypatch):
         if str(dst).endswith("result.json"):
             raise OSError("killed while writing result.json")
         real_replace(src, dst)
-    monkeypatch.setattr(runs.os, "replace", replace)
+    monkeypatch.setattr(os, "replace", replace)
     spec = toy_spec()
     with pytest.raises(OSError):
         runs.execute(spec, tmp_path, quiet=True)
     d = spec.directory(tmp_path)
     assert not (d / "result.json").exists()
     assert not [p for p in d.iterdir() if p.name.startswith(".result.json")]
-    monkeypatch.setattr(runs.os, "replace", real_replace)
+    monkeypatch.setattr(os, "replace", real_replace)
     assert runs.execute(spec, tmp_path, quiet=True).stable
 
 

@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import runs
+from bench import execution, runs
+from bench.pareto import pareto_mask
 from bench.studies import stress, sweep
 from bench.studies.compare import scene_pair
 from bench.studies.context import INLINE, StudyContext, StudyError
@@ -90,7 +91,7 @@ def test_errors_are_relative_l2():
 def test_pareto_mask():
     wall = np.array([1.0, 2.0, 3.0, 2.5, np.nan])
     error = np.array([0.5, 0.2, 0.1, 0.3, 0.0])
-    assert sweep.pareto_mask(wall, error).tolist() == [True, True, True, False, False]
+    assert pareto_mask(wall, error).tolist() == [True, True, True, False, False]
 
 
 def test_verdict_interpolates_wall_time_at_equal_error():
@@ -117,7 +118,7 @@ TINY = dataclasses.replace(SCALES["smoke"], stress_particles=3000, stress_steps=
 
 
 def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, monkeypatch):
-    real_execute = runs.execute
+    real_execute = execution.execute
     calls = []
 
     def execute(spec, root=None, **kw):
@@ -126,7 +127,7 @@ def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, mon
             raise RuntimeError("worker lost")          # the 4th run dies, the study goes on
         return real_execute(spec, root, **kw)
 
-    monkeypatch.setattr(runs, "execute", execute)
+    monkeypatch.setattr(execution, "execute", execute)     # what the inline workers call
     ctx = StudyContext(out=tmp_path / "out", scale=TINY, runs_root=tmp_path / "runs", scheduler=INLINE, quiet=True)
     # 11 cases (3 dt, 2 iterations, 5 heating rates, 1 alpha*dt), 10 distinct runs: dt = 2 s and heating x1
     # are both the base scene

@@ -1,7 +1,7 @@
 """A small deterministic stand-in for pbf_cuda.Simulation, so the harness's cache, resume and
 instability handling are tested even where the compiled solver is absent.
 
-It honours the Simulation contract the run loop uses (step, step_count, time, n_particles, backend,
+It honours the simulation protocol the run loop uses (step, step_count, time, size, n_particles, backend,
 scene, state, stats, timings, reset_timings, save, load) and counts every step it takes.
 """
 from __future__ import annotations
@@ -11,7 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from bench import runs
+from bench import solvers
+from pbf_cuda.files import atomic_path
+from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import load_scene
 
 
@@ -40,6 +42,10 @@ class ToySimulation:
     def n_particles(self):
         return len(self.pos)
 
+    @property
+    def size(self):
+        return self.n_particles
+
     def step(self, n=1):
         dt = self.scene.time.dt
         centre = np.asarray(self.scene.domain.size) / 2
@@ -58,7 +64,7 @@ class ToySimulation:
             speed = np.linalg.norm(self.vel, axis=1)
             if speed.max() > self.scene.pbf.max_velocity:
                 bad = self.ids[speed > self.scene.pbf.max_velocity]
-                raise runs.RunInstability(self.step_count, "velocity above pbf.max_velocity", bad,
+                raise InstabilityError(self.step_count, "velocity above pbf.max_velocity", bad,
                                           self.step_count - 1)
 
     def state(self):
@@ -80,7 +86,7 @@ class ToySimulation:
     def save(self, path):
         meta = json.dumps({"scene": self.scene.to_dict(), "step": self.step_count, "time": self.time,
                            "seed": self.seed})
-        with runs.atomic_path(path) as tmp:
+        with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, pos=self.pos, vel=self.vel, temperature=self.temperature,
                          meta=np.frombuffer(meta.encode(), np.uint8))
@@ -95,16 +101,12 @@ class ToySimulation:
         return cls(scene_from_dict(meta["scene"]), seed=meta["seed"], _state=state)
 
 
-class ToyAdapter(runs.ParticleAdapter):
+class ToyAdapter(solvers.ParticleAdapter):
     """The particle adapter with the toy solver and a small diagnostics function (mean height, profile)."""
 
     @staticmethod
     def resolve_backend(backend):
         return "cpu"
-
-    @staticmethod
-    def instability_errors():
-        return (runs.RunInstability,)
 
     @staticmethod
     def preflight(spec):
@@ -135,7 +137,7 @@ class ToyAdapter(runs.ParticleAdapter):
 @pytest.fixture
 def toy_solver(monkeypatch):
     """Swap the particle solver for the toy; yields the ToySimulation class (its step counter reset)."""
-    monkeypatch.setitem(runs.ADAPTERS, "particles", ToyAdapter)
+    monkeypatch.setitem(solvers.ADAPTERS, "particles", ToyAdapter)
     ToySimulation.steps_taken = 0
     return ToySimulation
 

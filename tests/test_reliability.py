@@ -29,6 +29,8 @@ from typer.testing import CliRunner
 
 from bench import runs
 from bench.cli import app
+from bench.store import manifest
+from bench.store.files import sha256_file
 from pbf_cuda import files, initial_state
 from pbf_cuda.memory import boundary_count, check_memory, estimate_memory
 from pbf_cuda.scene import MAX_SCENE_BYTES, SCENE_DIR, Scene, SceneError, list_scenes, load_scene, scene_from_dict
@@ -413,7 +415,7 @@ def test_tampered_manifest_is_refused_without_reading_outside_the_run(toy_solver
     info = json.loads((first.path / "result.json").read_text())
     info["manifest"]["../../outside.txt"] = {"bytes": 1, "sha256": "0" * 64}
     info["manifest"]["stats.parquet"] = "not an entry"
-    info["checksum"] = runs._info_checksum(info)                   # a consistent-looking forgery
+    info["checksum"] = manifest.info_checksum(info)                # a consistent-looking forgery
     (first.path / "result.json").write_text(json.dumps(info))
     problems = runs.verify_run(first.path, spec.key())
     assert sum("malformed" in p for p in problems) == 2, problems
@@ -477,7 +479,7 @@ def test_checkpoint_of_another_run_or_scene_is_not_resumed(reference, toy_solver
     sim.step(10)
     sim.save(o / "checkpoint.npz")
     prog = json.loads((o / "progress.json").read_text())
-    runs.atomic_write_json(o / "progress.json", {**prog, "checkpoint_sha256": runs.sha256_file(o / "checkpoint.npz")})
+    runs.atomic_write_json(o / "progress.json", {**prog, "checkpoint_sha256": sha256_file(o / "checkpoint.npz")})
     res = runs.execute(other, tmp_path, quiet=True)
     assert res.resumed_from is None
     assert "the checkpoint's scene differs from the run's" in (o / "log.txt").read_text()
@@ -501,7 +503,7 @@ def test_stale_temp_files_are_removed_and_files_have_one_mode(toy_solver, tmp_pa
              if p.is_file() and p.name not in ("log.txt", ".lock")}
     assert modes and all(m == want for m in modes.values()), modes
     # the same helper (and mode) for checkpoints, study frames and the report
-    from bench.statistics import save_frame
+    from bench.store.files import save_frame
     files.atomic_savez(tmp_path / "c.npz", {"a": 1}, x=np.arange(3))
     save_frame(pd.DataFrame({"a": [1]}), tmp_path / "f.csv")
     for p in (tmp_path / "c.npz", tmp_path / "f.csv"):
@@ -526,9 +528,9 @@ def test_refused_run_leaves_nothing_in_the_cache(tmp_path):
 RUNNER = textwrap.dedent("""
     import sys, time
     sys.path[:0] = [{tests!r}, {root!r}]
-    from bench import runs
+    from bench import runs, solvers
     import test_harness_toy as toy
-    runs.ADAPTERS["particles"] = toy.ToyAdapter
+    solvers.ADAPTERS["particles"] = toy.ToyAdapter
     spec = runs.RunSpec("particles", toy.toy_scene(**{{"time.steps": 40}}), seed=1, checkpoint_every=5,
                         record_steps=True, keep_snapshots=2)
     def slow(step):

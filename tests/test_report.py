@@ -9,6 +9,7 @@ import pytest
 
 from bench import render
 from bench import statistics as st
+from bench.pareto import pareto_front
 from bench.report import SECTIONS, build_report
 from bench.report import plots
 
@@ -234,18 +235,18 @@ def test_broken_input_shows_an_error_in_its_section_only(tmp_path, full_report):
     assert "could not build" not in sections["sweep"]
 
 
-def test_gpu_reference_layout_is_read_from_the_directory_itself(tmp_path):
+def test_gpu_reference_layout_is_read_from_its_data_folder(tmp_path):
     out = tmp_path / "gpu"
-    out.mkdir()
+    (out / "data").mkdir(parents=True)
     pd.DataFrame({"cells": [32**3, 64**3], "step_ms": [1.0, 6.0], "dtype": "float32", "device": "NVIDIA H100",
-                  "commit": COMMIT}).to_csv(out / "grid_scaling.csv", index=False)
+                  "commit": COMMIT}).to_csv(out / "data" / "grid_scaling.csv", index=False)
     sections = _sections(build_report(out).read_text())
     assert "NVIDIA H100" in sections["scaling"] and "data:image/png" in sections["scaling"]
 
 
 def test_pareto_front_and_seed_spread():
     df = pd.DataFrame({"wall_s": [1.0, 2.0, 3.0, 4.0, 2.5], "error_self": [0.5, 0.3, 0.35, 0.1, 0.3]})
-    front = plots.pareto_front(df)
+    front = pareto_front(df)
     assert front["wall_s"].tolist() == [1.0, 2.0, 4.0]
     ts = pd.DataFrame({"solver": "grid", "mode": "grid", "seed": [0, 1, 2, 0, 1, 2],
                        "time_s": [0, 0, 0, 10, 10, 10], "cloud_cover": [0.0, 0.0, 0.0, 0.1, 0.3, 0.2]})

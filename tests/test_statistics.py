@@ -6,6 +6,7 @@ import pandas as pd
 import pytest
 
 from bench import statistics as st
+from bench.store.files import save_frame
 
 # --------------------------------------------------------------------------------------------
 # a box of cloud on a grid: every diagnostic has a closed form
@@ -328,10 +329,10 @@ def test_onset_time_and_timeseries_frame(tmp_path):
     assert onsets.set_index("solver")["onset_s"]["particles"] == 20.0
     assert math.isnan(onsets.set_index("solver")["onset_s"]["grid"])
     for suffix in ("csv", "parquet"):
-        path = st.save_frame(both, tmp_path / f"series.{suffix}")
+        path = save_frame(both, tmp_path / f"series.{suffix}")
         back = pd.read_csv(path) if suffix == "csv" else pd.read_parquet(path)
         assert len(back) == len(both) and list(back.columns) == list(both.columns)
     with pytest.raises(ValueError, match="csv or .parquet"):
-        st.save_frame(both, tmp_path / "series.txt")
+        save_frame(both, tmp_path / "series.txt")
     with pytest.raises(KeyError, match="cloud_cover"):
         st.onset_time(pd.DataFrame({"time_s": [0.0]}))

@@ -18,9 +18,6 @@ produces it; nothing is ever filled in.
     OUT/data/stress.csv              parameter,value,stable,reason,step,particles,max_speed,density_error_mean
     OUT/data/renders/*.png           clouds_particles, clouds_volume, figure1_unsmoothed, figure1_smoothed,
                                      figure3_shape_energy (NAME.unavailable.txt: why a render is missing)
-
-A CSV not found in ``OUT/data`` is also looked for in ``OUT`` itself (the layout of
-the committed GPU reference results, e.g. ``reports/gpu/pbf_scaling.csv``).
 """
 from __future__ import annotations
 
@@ -33,6 +30,8 @@ from pathlib import Path
 import jinja2
 import numpy as np
 import pandas as pd
+
+from bench.pareto import pareto_front
 
 from . import plots
 
@@ -103,7 +102,7 @@ class Section:
 
 
 class Inputs:
-    """Reads OUT/data: CSVs (with the OUT/ fallback), environment.json and renders."""
+    """Reads OUT/data: CSVs, environment.json and renders."""
 
     def __init__(self, out_dir: Path):
         self.out = Path(out_dir)
@@ -113,12 +112,8 @@ class Inputs:
 
     def csv(self, name: str) -> tuple[pd.DataFrame | None, Path | None]:
         if name not in self._cache:
-            found = None
-            for candidate in (self.data / f"{name}.csv", self.out / f"{name}.csv"):
-                if candidate.is_file():
-                    found = candidate
-                    break
-            if found is None:
+            found = self.data / f"{name}.csv"
+            if not found.is_file():
                 self._cache[name] = (None, None)
             else:
                 df = pd.read_csv(found)
@@ -505,7 +500,7 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
         "beaten in both wall time and error by another of its group)."))
     keys = [k for k in ("method", "mode") if k in df.columns]
     measured = df[~reference & df["error_self"].notna() & df["wall_s"].notna()]
-    fronts = [plots.pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
+    fronts = [pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
     cols = [c for c in ("method", "mode", "parameter", "value", "particles", "cells", "wall_s", "error_self",
                         "error_other") if c in df.columns]
     if fronts:
@@ -571,7 +566,7 @@ def _verdict(df: pd.DataFrame) -> str:
     for mode in ("non-adaptive", "adaptive"):
         g = df[(df["mode"] == mode) & (df["method"] == "particles")]
         if len(g.dropna(subset=["wall_s", "error_self"])):
-            fronts[mode] = plots.pareto_front(g, "wall_s", "error_self")
+            fronts[mode] = pareto_front(g, "wall_s", "error_self")
     if len(fronts) < 2:
         return ""
     level = max(f["error_self"].min() for f in fronts.values())  # an error both modes reach
@@ -662,14 +657,15 @@ def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
     ])
 
 
-STUDY_OF_SECTION = {"table1": "table1", "phases": "table1", "scaling": "scaling", "adaptive": "compare",
-                    "compare": "compare", "sweep": "sweep", "adaptive_pareto": "adaptive_pareto", "stress": "stress", "renders": "renders",
-                    "figure1": "renders", "figure3": "renders"}
-"""Which study (a key of demo_status.json) writes the inputs of each section."""
+def study_of_section() -> dict:
+    """Which demo study (a key of demo_status.json) writes the inputs of each section (as each study
+    declares in bench.studies.registry)."""
+    from bench.studies.registry import demo_studies
+    return {section: s.name for s in demo_studies() for section in s.sections}
 
 
 def _study_failure(status: dict, section_id: str) -> str:
-    study = STUDY_OF_SECTION.get(section_id)
+    study = study_of_section().get(section_id)
     entry = status.get(study) if study else None
     if not isinstance(entry, dict) or entry.get("ok", True):
         return ""

@@ -17,6 +17,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from bench.pareto import pareto_front  # noqa: E402
+
 PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
 PHASE_COLORS = {"pbf": "#4c72b0", "smoothing": "#55a868", "cloud_dynamics": "#c44e52",
                 "splitting": "#8172b2", "merging": "#ccb974"}
@@ -234,17 +236,6 @@ def profiles_plot(df: pd.DataFrame, time_s: float | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # sweep: run time against error
 # ------------------------------------------------------------------------------------------
-def pareto_front(df: pd.DataFrame, cost: str = "wall_s", error: str = "error_self") -> pd.DataFrame:
-    """Rows not dominated by any other (lower cost and lower error), sorted by cost."""
-    d = df.dropna(subset=[cost, error]).sort_values([cost, error], kind="stable")
-    keep, best = [], np.inf
-    for idx, err in zip(d.index, d[error]):
-        if err < best:
-            keep.append(idx)
-            best = err
-    return d.loc[keep]
-
-
 def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_other"),
                 reference: pd.Series | None = None) -> str:
     """Wall time against error per method (and mode), with the Pareto front of each as a line.

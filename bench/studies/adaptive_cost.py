@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Annotated
 
 import pandas as pd
+import typer
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
+from bench.cli_common import Backend, BackendOpt, QuietOpt, RunsRootOpt, parse_list, run_command, scene_arg
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 SCENES = ("growing_adaptive", "cycling_adaptive")
@@ -74,10 +78,34 @@ COLUMNS = ("scene", "spacing_m", "mean_particles", "max_particles", "splitting_m
            "compaction_ms", "pbf_ms", "total_ms", "split_vs_pbf", "merge_vs_pbf", "meets_targets", "device")
 
 
+def adaptive_cost_command(
+    spacing: Annotated[float, typer.Option(min=5.0, max=1000.0, help="level-0 lattice spacing, m")] = 45.0,
+    steps: Annotated[int, typer.Option(min=3, max=100_000, help="steps per run")] = 500,
+    scenes: Annotated[str, typer.Option(help="adaptive scenes, comma-separated")] = "growing_adaptive,cycling_adaptive",
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/adaptive_cost.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """Split and merge ms per step of the adaptive scenes on a given level-0 spacing (GPU benchmark)."""
+    names = parse_list(scenes, "--scenes", str, example="growing_adaptive,cycling_adaptive")
+    for name in names:
+        scene_arg(name)
+    if steps <= WARMUP_STEPS:
+        raise typer.BadParameter(f"{steps}: must be > {WARMUP_STEPS} (the warm-up steps)", param_hint="'--steps'")
+    frame = adaptive_cost(names, spacing, steps, backend.value, runs_root, quiet)
+    runs.write_csv(frame, out)
+    typer.echo(frame[list(COLUMNS)].to_string(index=False))
+    typer.echo(f"targets: splitting <= {SPLIT_TARGET_MS} ms, merging <= {MERGE_TARGET_MS} ms per step; "
+               f"wrote {out}")
+
+
+register(Study("adaptive-cost", order=70, outputs=("adaptive_cost.csv",), sections=("phases",),
+               command=adaptive_cost_command))
+
+
 def main(argv=None) -> int:
     """``python -m bench.studies.adaptive_cost ARGS`` is ``cloudpbf adaptive-cost ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["adaptive-cost", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(adaptive_cost_command, "adaptive-cost", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -40,11 +40,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from typing import Annotated
+
+import click
 import numpy as np
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_steps
 from pbf_cuda.scene import Scene, load_scene
 
@@ -181,7 +188,7 @@ def _mean_particles(result: runs.RunResult) -> float:
 
 def uniform_front(uniform: pd.DataFrame) -> pd.DataFrame:
     """The uniform configurations no other uniform one beats in both ms/step and error, by error."""
-    from bench.report.plots import pareto_front
+    from bench.pareto import pareto_front
     return pareto_front(uniform, "ms_per_step", "error").sort_values("error")
 
 
@@ -300,3 +307,28 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
     runs.atomic_write_json(ctx.data / f"adaptive_verdict{suffix}.json", verdict)
     return {"runs": per_run, "configs": per_config, "verdict": verdict}
+
+
+def adaptive_pareto_command(
+    scene: Annotated[str, typer.Option(help="growing (the paper's example 1) or cumulus (one heated patch)")] = "growing",
+    seeds: Annotated[int, typer.Option(min=3, max=100, help="noise seeds per configuration (>= 3)")] = 3,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Adaptive variants against uniform runs at four spacings: seed-mean errors against a finer reference."""
+    if scene not in SCENES:
+        raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with refusals():
+            result = run_adaptive_pareto(ctx, scene, seeds)
+    cols = ["config", "particles", "ms_per_step", "error", "error_seed_spread", "e_base", "e_top", "e_profile",
+            "speedup_at_equal_error"]
+    typer.echo(result["configs"][cols].to_string(index=False))
+    typer.echo(result["verdict"]["verdict"])
+    typer.echo(f"PBF cost per adaptive particle / per uniform particle: {result['verdict']['cost_ratio_per_particle']}")
+
+
+register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
+               outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_verdict.json"),
+               command=adaptive_pareto_command))

@@ -33,7 +33,7 @@ def run_budgets(scene="growing", particles: int | None = 8000, steps: int | None
     """Both solvers' budget rows (a DataFrame with COLUMNS)."""
     import pandas as pd
 
-    from bench.studies.environment import commit as git_commit
+    from bench.environment import commit as git_commit
     from bench.studies.scales import scale_scene
     from grid_baseline import GridSimulation
     from pbf_cuda import Simulation

@@ -130,7 +130,7 @@ def run_profiles(scene: Scene | str = "dry_cbl", times=(200.0, 400.0, 600.0), se
     """Run both solvers to each time (s); one row per (time, height bin) with both mean profiles."""
     import pandas as pd
 
-    from bench.studies.environment import commit as git_commit
+    from bench.environment import commit as git_commit
     from grid_baseline import GridSimulation
     from pbf_cuda import Simulation
 

@@ -15,11 +15,17 @@ budgets are measured alike.  Outputs in OUT/data:
 """
 from __future__ import annotations
 
+from typing import Annotated, Optional
+
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
 from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 
@@ -110,3 +116,28 @@ def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | Non
     for name, frame in out.items():
         runs.write_csv(frame, ctx.data / f"{name}.csv")
     return out
+
+
+def compare_command(
+    scene: Annotated[str, typer.Argument(help="a cloud scene (its NAME_adaptive twin is used when it ships)")] = "growing",
+    seeds: Annotated[Optional[int], typer.Option(min=5, max=1000, help="noise seeds per mode (>= 5)")] = None,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Particles (non-adaptive and adaptive) against the grid baseline over >= 5 seeds."""
+    scene_arg(scene)
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        try:
+            with refusals():
+                frames = run_compare(ctx, scene, seeds)
+        except ValueError as exc:
+            raise click.UsageError(str(exc)) from None
+    typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
+    typer.echo(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
+
+
+register(Study("compare", order=30, run=lambda ctx, scene: run_compare(ctx, scene), sections=("adaptive", "compare"),
+                outputs=("compare_timeseries.csv", "compare_profiles.csv", "compare_runs.csv"),
+                scale={"seeds": {"smoke": 5, "cpu": 5, "gpu": 5}},       # noise seeds per mode
+                command=compare_command))

@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Annotated, Optional
 
 import pandas as pd
+import typer
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
+from bench.cli_common import Backend, BackendOpt, QuietOpt, RunsRootOpt, parse_list, run_command
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 COLUMNS = ("case", "constant_gravity", "cloud_gravity", "particles", "stable", "reason", "first_cloud_s",
@@ -73,10 +77,31 @@ def constant_gravity(gravities=(0.1, 0.3, 1.0), particles: int | None = None, st
     return pd.DataFrame(rows)
 
 
+def constant_gravity_command(
+    gravity: Annotated[str, typer.Option(help="constant gravities g_c to add, m/s^2, comma-separated")] = "0.1,0.3,1.0",
+    particles: Annotated[Optional[int], typer.Option(min=100, max=10**9, help="resample the scenes to about this many")] = None,
+    steps: Annotated[Optional[int], typer.Option(min=1, max=10**7, help="steps (default: the scenes' 500)")] = None,
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/constant_gravity.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """`growing` with a constant gravity added, beside the shipped `cycling` (README: Deviations)."""
+    import pandas as pd
+    values = parse_list(gravity, "--gravity", float, 1e-9, 100.0, "0.1,0.3,1.0")
+    frame = constant_gravity(values, particles, steps, backend=backend.value, runs_root=runs_root, quiet=quiet)
+    runs.write_csv(frame, out)
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        typer.echo(frame[[c for c in COLUMNS if c in frame.columns]].to_string(index=False))
+    typer.echo(f"wrote {out}")
+
+
+register(Study("constant-gravity", order=80, outputs=("constant_gravity.csv",), sections=("stress",),
+               command=constant_gravity_command))
+
+
 def main(argv=None) -> int:
     """``python -m bench.studies.constant_gravity ARGS`` is ``cloudpbf constant-gravity ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["constant-gravity", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(constant_gravity_command, "constant-gravity", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bench import runs
-from bench.studies import environment
+from bench.solvers import ParticleAdapter
+from bench.store.identity import REPO_ROOT
+from bench import environment
 from bench.studies.scales import Scale
 
 __all__ = ["StudyContext", "StudyError", "INLINE"]
@@ -76,7 +78,7 @@ def xla_single_thread_flags(existing: str | None = None) -> str:
 
 def _worker_env(threads: int) -> dict:
     env = {"OMP_NUM_THREADS": str(threads),
-           "PYTHONPATH": os.pathsep.join([str(runs.REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+           "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     if threads == 1:
         env["XLA_FLAGS"] = xla_single_thread_flags(os.environ.get("XLA_FLAGS"))
     if os.environ.get("CLOUDPBF_RUNS"):
@@ -135,7 +137,7 @@ class StudyContext:
             print(message, file=sys.stderr, flush=True)
 
     def particle_backend(self) -> str:
-        return runs.ParticleAdapter.resolve_backend(self.backend)
+        return ParticleAdapter.resolve_backend(self.backend)
 
     # ---- running -------------------------------------------------------------------------------
     def run_serial(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:

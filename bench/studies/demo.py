@@ -1,7 +1,8 @@
 """The main job: every study at a scale that fits the machine, then the HTML report.
 
-Order: environment, the timing studies in this process (Table 1, scaling), then compare, sweep and
-stress on the dask cluster, then the renders, then the report.  A study that fails does not stop the
+The studies are those of bench.studies.registry, in their declared order: environment, the timing
+studies in this process (Table 1, scaling), then compare, sweep and stress on the dask cluster, then
+the renders, then the report.  A study that fails does not stop the
 others: its error goes to OUT/data/demo_status.json and the report shows that section as not run.
 Everything comes from the run cache, so a second demo only rebuilds the CSVs and the report.
 """
@@ -12,16 +13,15 @@ import traceback
 from pathlib import Path
 
 from bench import runs
-from bench.studies import environment
-from bench.studies.compare import run_compare
+from bench import environment
 from bench.studies.context import StudyContext
-from bench.studies.renders import run_renders
-from bench.studies.scaling import run_scaling
-from bench.studies.stress import run_stress
-from bench.studies.sweep import run_sweep
-from bench.studies.table1 import run_table1
+from bench.studies.registry import demo_studies
 
-STUDIES = ("table1", "scaling", "compare", "sweep", "stress", "renders")
+
+
+def study_names() -> tuple[str, ...]:
+    """The demo's studies, in order."""
+    return tuple(s.name for s in demo_studies())
 
 
 def build_report(out: Path) -> Path:
@@ -30,30 +30,26 @@ def build_report(out: Path) -> Path:
     return Path(build(out))
 
 
-def run_demo(ctx: StudyContext, scene_name: str = "growing", only: tuple[str, ...] = STUDIES) -> tuple[Path | None, dict]:
+def run_demo(ctx: StudyContext, scene_name: str = "growing",
+             only: tuple[str, ...] | None = None) -> tuple[Path | None, dict]:
     """Run the studies in `only` (all by default) and build the report.
 
     Returns (index.html or None when the report could not be built, {study: status})."""
-    unknown = [s for s in only if s not in STUDIES]
+    names = study_names()
+    only = names if only is None else only
+    unknown = [s for s in only if s not in names]
     if unknown:
-        raise ValueError(f"unknown study {unknown[0]!r}: allowed {', '.join(STUDIES)}")
+        raise ValueError(f"unknown study {unknown[0]!r}: allowed {', '.join(names)}")
     environment.write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())  # also when called without the CLI
-    jobs = {
-        "table1": lambda: run_table1(ctx),
-        "scaling": lambda: run_scaling(ctx),
-        "compare": lambda: run_compare(ctx, scene_name),
-        "sweep": lambda: run_sweep(ctx, scene_name),
-        "stress": lambda: run_stress(ctx),
-        "renders": lambda: run_renders(ctx, scene_name),
-    }
     status = {}
-    for name in STUDIES:
+    for study in demo_studies():
+        name = study.name
         if name not in only:
             continue
         ctx.say(f"== {name} ({ctx.scale.name} scale)")
         t0 = time.perf_counter()
         try:
-            jobs[name]()
+            study.run(ctx, scene_name)
             status[name] = {"ok": True, "seconds": round(time.perf_counter() - t0, 1)}
         except Exception as exc:  # keep going: the report shows what is missing and why
             status[name] = {"ok": False, "seconds": round(time.perf_counter() - t0, 1),

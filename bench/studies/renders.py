@@ -16,6 +16,7 @@ from pathlib import Path
 from bench import render, runs, statistics
 from bench.studies.compare import compare_specs
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_slab
 from pbf_cuda.scene import load_scene
 
@@ -75,3 +76,8 @@ def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Pat
     for name, path in done.items():
         ctx.say(f"renders: {name}: {'written' if path else 'unavailable (see ' + render.note_path(out / name).name + ')'}")
     return done
+
+
+register(Study("renders", order=60, run=lambda ctx, scene: run_renders(ctx, scene),
+                sections=("renders", "figure1", "figure3"), outputs=tuple(f"renders/{name}" for name in RENDERS),
+                scale={"slab_particles": {"smoke": 2000, "cpu": 25_000, "gpu": None}}))     # Figure 1 slab

@@ -11,7 +11,9 @@ step counts and snapshot intervals are multiplied by the scale's `step_fraction`
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from pbf_cuda.scene import Scene
@@ -21,53 +23,56 @@ SCALE_NAMES = ("auto", "smoke", "cpu", "gpu")
 
 @dataclass(frozen=True)
 class Scale:
-    """Sizes of every study at one scale.  Particle counts are fine-particle equivalents
-    (an adaptive scene counts its level-0 particles times 2^max_level)."""
+    """Sizes of every study at one scale: the fields every study shares, here, and each study's own
+    fields, declared in its file (Study.scale) and added to the class that SCALES holds.  Particle
+    counts are fine-particle equivalents (an adaptive scene counts its level-0 particles times 2^max_level)."""
     name: str
     environment_label: str            # environment.json's scale: cpu-smoke | cpu | gpu
     particles: int | None             # cloud scenes' particle count (None: the scene files' spacing)
     step_fraction: float              # of each scene's time.steps
-    seeds: int                        # compare: noise seeds per mode
-    slab_particles: int | None        # Figure 1 slab
-    sweep_particles: tuple            # spacing sweep, coarse to fine (the finest is the reference)
-    sweep_iterations: tuple           # PBF iterations at the middle spacing
-    sweep_split_thresholds: tuple     # adaptive split threshold alpha at the middle spacing
-    sweep_grid_cells: tuple           # grid cells along the longest axis, coarse to fine
-    stress_particles: int
-    stress_steps: int
-    stress_dt: tuple                  # s
-    stress_iterations: tuple
-    stress_alpha_dt: tuple            # phase_rate * dt (dimensionless)
-    scaling_particles: tuple
-    scaling_grid_cells: tuple         # n for an n^3 grid
-    timing_steps: int                 # timed steps of a scaling run (after 2 warm-up steps)
 
 
-STRESS_DT = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)
-STRESS_ITERATIONS = (1, 2, 4, 8)
-STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)
-
-SCALES = {
-    "smoke": Scale("smoke", "cpu-smoke", particles=3000, step_fraction=0.5, seeds=5, slab_particles=2000,
-                   sweep_particles=(2000, 3000, 5000), sweep_iterations=(2, 8),
-                   sweep_split_thresholds=(0.15, 0.6), sweep_grid_cells=(8, 12, 16),
-                   stress_particles=2000, stress_steps=30, stress_dt=STRESS_DT, stress_iterations=STRESS_ITERATIONS,
-                   stress_alpha_dt=STRESS_ALPHA_DT,
-                   scaling_particles=(2000, 8000), scaling_grid_cells=(12, 20), timing_steps=5),
-    "cpu": Scale("cpu", "cpu", particles=50_000, step_fraction=1.0, seeds=5, slab_particles=25_000,
-                 sweep_particles=(12_500, 25_000, 50_000, 100_000), sweep_iterations=(1, 2, 8, 16),
-                 sweep_split_thresholds=(0.1, 0.2, 0.5, 1.0), sweep_grid_cells=(16, 24, 32, 48),
-                 stress_particles=10_000, stress_steps=100, stress_dt=STRESS_DT, stress_iterations=STRESS_ITERATIONS,
-                 stress_alpha_dt=STRESS_ALPHA_DT,
-                 scaling_particles=(10_000, 50_000, 250_000), scaling_grid_cells=(16, 32, 48), timing_steps=10),
-    "gpu": Scale("gpu", "gpu", particles=None, step_fraction=1.0, seeds=5, slab_particles=None,
-                 sweep_particles=(100_000, 250_000, 840_000, 2_000_000), sweep_iterations=(1, 2, 8, 16),
-                 sweep_split_thresholds=(0.1, 0.2, 0.5, 1.0), sweep_grid_cells=(32, 48, 64, 96),
-                 stress_particles=100_000, stress_steps=200, stress_dt=STRESS_DT,
-                 stress_iterations=STRESS_ITERATIONS, stress_alpha_dt=STRESS_ALPHA_DT,
-                 scaling_particles=(250_000, 1_000_000, 4_000_000), scaling_grid_cells=(32, 64, 96),
-                 timing_steps=20),
+BASE = {
+    "smoke": Scale("smoke", "cpu-smoke", particles=3000, step_fraction=0.5),
+    "cpu": Scale("cpu", "cpu", particles=50_000, step_fraction=1.0),
+    "gpu": Scale("gpu", "gpu", particles=None, step_fraction=1.0),
 }
+
+
+class _ScaleTable(Mapping):
+    """{'smoke' | 'cpu' | 'gpu': Scale}: the shared sizes with every registered study's own, assembled
+    on first use (the studies register when bench.studies.registry discovers them)."""
+
+    def __init__(self):
+        self._table = None
+
+    def _build(self) -> dict:
+        if self._table is None:
+            from bench.studies.registry import studies
+            declared = {}
+            for study in studies():
+                for name, values in study.scale.items():
+                    if name in declared or any(f.name == name for f in dataclasses.fields(Scale)):
+                        raise ValueError(f"scale field {name!r} is declared twice (study {study.name!r})")
+                    declared[name] = values
+            full = dataclasses.make_dataclass("Scale", [(name, object) for name in declared], bases=(Scale,),
+                                              frozen=True)
+            full.__doc__ = Scale.__doc__
+            self._table = {key: full(**dataclasses.asdict(base), **{n: v[key] for n, v in declared.items()})
+                           for key, base in BASE.items()}
+        return self._table
+
+    def __getitem__(self, key):
+        return self._build()[key]
+
+    def __iter__(self):
+        return iter(self._build())
+
+    def __len__(self):
+        return len(self._build())
+
+
+SCALES = _ScaleTable()
 
 
 def resolve_scale(name: str) -> Scale:

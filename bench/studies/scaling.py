@@ -7,7 +7,7 @@ update) and ``neighbors_ms`` / ``solver_ms`` its sub-timers, each a mean over th
 Grid: the same scene on n^3 cells, per dtype, measured by bench.grid_scaling (``step_ms`` is the
 grid's own mean step time, compiled before the clock starts).
 
-    cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/pbf_scaling.csv
+    cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/data/pbf_scaling.csv
 
 writes particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit (then pbf_ms, backend,
 scene, steps, stable, reason, run_dir) to --out.  Particle runs go through the run cache, so a rerun
@@ -17,11 +17,16 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Annotated, Optional
 
 import pandas as pd
+import typer
 
 from bench import runs
-from bench.studies import environment
+from bench import environment
+from bench.cli_common import (Backend, BackendOpt, DEFAULT_OUT, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              parse_sizes, refusals, run_command, scene_arg, study_context)
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 SCENE = "growing"
@@ -88,9 +93,58 @@ def run_scaling(ctx) -> dict[str, pd.DataFrame]:
 
 def main(argv=None) -> int:
     """``python -m bench.studies.scaling ARGS`` is ``cloudpbf pbf-scaling ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["pbf-scaling", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(pbf_scaling_command, "pbf-scaling", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def scaling_command(
+    sizes: Annotated[Optional[str], typer.Option(help="particle counts, comma-separated (default: the scale's)")] = None,
+    grid_sizes: Annotated[Optional[str], typer.Option(help="n for n^3 grids, comma-separated (default: the scale's)")] = None,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, quiet: QuietOpt = False,
+) -> None:
+    """ms per step against particle count (pbf_scaling.csv) and grid cells (grid_scaling.csv)."""
+    import dataclasses
+    particle_sizes = parse_sizes(sizes, "--sizes", 100)
+    cell_sizes = parse_sizes(grid_sizes, "--grid-sizes", 2)
+    with study_context(out, runs_root, scale, backend, None, None, quiet) as ctx:
+        if particle_sizes or cell_sizes:
+            ctx.scale = dataclasses.replace(ctx.scale, scaling_particles=tuple(particle_sizes or ctx.scale.scaling_particles),
+                                            scaling_grid_cells=tuple(cell_sizes or ctx.scale.scaling_grid_cells))
+        with refusals():
+            frames = run_scaling(ctx)
+    typer.echo(frames["pbf_scaling"][list(PBF_COLUMNS)].to_string(index=False))
+    typer.echo(frames["grid_scaling"][list(GRID_COLUMNS)].to_string(index=False))
+    typer.echo(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
+
+
+def pbf_scaling_command(
+    sizes: Annotated[str, typer.Option(help="particle counts, comma-separated")] = "250000,1000000,4000000",
+    steps: Annotated[int, typer.Option(min=1, max=10_000, help="timed steps per size (after 2 warm-up steps)")] = 20,
+    iterations: Annotated[int, typer.Option(min=1, max=200, help="PBF solver iterations")] = 4,
+    scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
+    backend: BackendOpt = Backend.auto,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/pbf_scaling.csv"),
+    runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
+) -> None:
+    """ms per particle step at the given sizes, one CSV (the GPU benchmark form of `scaling`)."""
+    counts = parse_sizes(sizes, "--sizes", 100)
+    scene_arg(scene)
+    frame = pbf_scaling(counts, backend.value, runs_root, scene, iterations, steps, quiet)
+    runs.write_csv(frame, out)
+    typer.echo(frame[list(PBF_COLUMNS)].to_string(index=False))
+    typer.echo(f"wrote {out}")
+
+
+register(Study("scaling", order=20, run=lambda ctx, scene: run_scaling(ctx), sections=("scaling",),
+                outputs=("pbf_scaling.csv", "grid_scaling.csv"),
+                scale={"scaling_particles": {"smoke": (2000, 8000), "cpu": (10_000, 50_000, 250_000),
+                                             "gpu": (250_000, 1_000_000, 4_000_000)},
+                       "scaling_grid_cells": {"smoke": (12, 20), "cpu": (16, 32, 48), "gpu": (32, 64, 96)},  # n^3
+                       "timing_steps": {"smoke": 5, "cpu": 10, "gpu": 20}},    # timed steps after 2 warm-up steps
+                command=scaling_command))
+register(Study("pbf-scaling", order=75, outputs=("pbf_scaling.csv",), sections=("scaling",),
+               command=pbf_scaling_command))

@@ -18,9 +18,13 @@ tried dt is stable).
 from __future__ import annotations
 
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, load_scene
 
@@ -90,3 +94,31 @@ def run_stress(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
                            {**largest_stable_dt(frame), "scene": scene_name, "steps": ctx.scale.stress_steps,
                             "particles": plan[0][2].scene.estimated_particles(), "commit": ctx.commit})
     return frame
+
+
+STRESS_DT = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 512.0)    # s
+STRESS_ITERATIONS = (1, 2, 4, 8)
+STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)                                 # phase_rate * dt
+
+def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+                   backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+                   quiet: QuietOpt = False) -> None:
+    """Stability map: dt, iterations, heating rate and alpha*dt; the largest stable dt."""
+    import json
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with refusals():
+            frame = run_stress(ctx)
+    typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
+    summary = json.loads((ctx.data / "stress_summary.json").read_text())
+    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s")
+    typer.echo(f"wrote {ctx.data / 'stress.csv'}")
+
+
+register(Study("stress", order=50, run=lambda ctx, scene: run_stress(ctx), sections=("stress",),
+               outputs=("stress.csv", "stress_summary.json"),
+               scale={"stress_particles": {"smoke": 2000, "cpu": 10_000, "gpu": 100_000},
+                      "stress_steps": {"smoke": 30, "cpu": 100, "gpu": 200},
+                      "stress_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_DT),
+                      "stress_iterations": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ITERATIONS),
+                      "stress_alpha_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ALPHA_DT)},
+               command=stress_command))

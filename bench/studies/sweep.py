@@ -27,10 +27,15 @@ import math
 
 import numpy as np
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -101,17 +106,6 @@ def errors(sig: dict | None, ref: dict | None) -> tuple[float, float, float]:
     profile = np.interp(ref["z"], sig["z"], sig["profile"])
     e_profile = _relative_l2(profile, ref["profile"])
     return 0.5 * (e_cover + e_profile), e_cover, e_profile
-
-
-def pareto_mask(wall: np.ndarray, error: np.ndarray) -> np.ndarray:
-    """True where no other point has wall <= and error <= with one strictly smaller (NaN: False)."""
-    ok = np.isfinite(wall) & np.isfinite(error)
-    out = np.zeros(len(wall), dtype=bool)
-    for i in np.flatnonzero(ok):
-        better_eq = ok & (wall <= wall[i]) & (error <= error[i])
-        strictly = (wall < wall[i]) | (error < error[i])
-        out[i] = not np.any(better_eq & strictly)
-    return out
 
 
 def verdict(frame: pd.DataFrame) -> dict:
@@ -185,3 +179,30 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
     runs.write_csv(frame, ctx.data / "sweep.csv")
     runs.atomic_write_json(ctx.data / "sweep_verdict.json", {**verdict(frame), "commit": ctx.commit})
     return frame
+
+
+def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+                  backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+                  quiet: QuietOpt = False) -> None:
+    """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
+    import json
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with refusals():
+            frame = run_sweep(ctx)
+    typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
+               .to_string(index=False))
+    typer.echo(json.loads((ctx.data / "sweep_verdict.json").read_text())["verdict"])
+    typer.echo(f"wrote {ctx.data / 'sweep.csv'}")
+
+
+register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
+                outputs=("sweep.csv", "sweep_verdict.json"),
+                scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
+                       # threshold alpha at the middle spacing; grid cells along the longest axis
+                       "sweep_particles": {"smoke": (2000, 3000, 5000), "cpu": (12_500, 25_000, 50_000, 100_000),
+                                           "gpu": (100_000, 250_000, 840_000, 2_000_000)},
+                       "sweep_iterations": {"smoke": (2, 8), "cpu": (1, 2, 8, 16), "gpu": (1, 2, 8, 16)},
+                       "sweep_split_thresholds": {"smoke": (0.15, 0.6), "cpu": (0.1, 0.2, 0.5, 1.0),
+                                                  "gpu": (0.1, 0.2, 0.5, 1.0)},
+                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}},
+                command=sweep_command))

@@ -20,9 +20,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
+import typer
 
 from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
+                              refusals, study_context)
 from bench.studies.context import StudyContext
+from bench.studies.registry import Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -82,3 +86,21 @@ def run_table1(ctx: StudyContext) -> pd.DataFrame:
     frame = pd.DataFrame([table1_row(meta, spec, res, ctx) for meta, spec, res in zip(ROWS, specs, results)])
     runs.write_csv(frame, ctx.data / "table1.csv")
     return frame
+
+
+def table1_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+                   backend: BackendOpt = Backend.auto, quiet: QuietOpt = False) -> None:
+    """Table 1: per-phase ms of the four examples beside the paper's (OUT/data/table1.csv)."""
+    with study_context(out, runs_root, scale, backend, None, None, quiet) as ctx:
+        with refusals():
+            frame = run_table1(ctx)
+    shown = ["example", "mode", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
+             "merging_ms", "total_ms", "paper_max_particles", "paper_total_ms", "speedup_vs_paper", "stable"]
+    typer.echo(frame[shown].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    typer.echo(f"device: {frame['device'].iloc[0]}; scale: {ctx.scale.environment_label}; "
+               f"paper: GeForce GTX 780 Ti")
+    typer.echo(f"wrote {ctx.data / 'table1.csv'}")
+
+
+register(Study("table1", order=10, run=lambda ctx, scene: run_table1(ctx), sections=("table1", "phases"),
+                outputs=("table1.csv",), command=table1_command))

@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent.parent
+REPO_ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("numpy", "pandas", "pyarrow", "scipy", "jax", "jaxlib", "jax-cfd", "dask", "distributed",
             "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm", "xarray", "h5netcdf", "zarr")
 SCALES = ("cpu-smoke", "cpu", "gpu")
@@ -121,5 +121,5 @@ def environment(scale: str, backend: str) -> dict:
 
 
 def write_environment(out_dir: str | Path, scale: str, backend: str) -> Path:
-    from bench.runs import atomic_write_json
+    from pbf_cuda.files import atomic_write_json
     return atomic_write_json(Path(out_dir) / "data" / "environment.json", environment(scale, backend))

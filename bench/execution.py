@@ -1,0 +1,360 @@
+"""Execution: run a RunSpec into its directory of the store, step by step, with checkpoints and resume.
+
+``execute(spec)`` returns the stored result when ``result.json`` exists (no work at all), resumes
+from ``checkpoint.npz`` when an earlier attempt was interrupted, and otherwise runs from step 0.
+Layout of ``ROOT/<solver>-<scene>-<key16>/``::
+
+    config.json        the spec and its identity (everything hashed into the key)
+    log.txt            start, resume, checkpoints, adaptive capacity full, instability, finish (appended)
+    timings.csv        phase,total_ms,count,mean_ms (wall time per phase after the warm-up steps)
+    stats.parquet      one row per diagnostic step: bench.statistics diagnostics (+ solver stats())
+    profiles.parquet   vertical profiles per diagnostic step (long format), when the statistics give them
+    steps.csv          solver stats() after every step (record_steps runs, e.g. dam_break's front x_max)
+    snapshots/step_NNNNNN.npz   a few full states (particles) or fields (grid), the final one included
+    checkpoint.npz     the latest good checkpoint, with progress.json beside it
+    partial/           rows gathered so far by an unfinished run (discarded up to its checkpoint on resume)
+    result.json        written last, atomically: marks the run complete (stable or not); holds the
+                       manifest (bytes, sha256) of the other files and its own checksum
+
+A stored result is served only when it passes :func:`verify_run`; a run that fails it (or an unfinished
+attempt whose checkpoint, progress.json or partial/ is unusable or belongs to another run) is moved to
+``ROOT/quarantine/`` (kept, logged) and computed again.  A run that cannot start (no such backend, too
+large for the memory) is refused before its directory is made.
+
+An unstable run (NaN/Inf, velocity or density-error bound, particles escaping through a wall) is
+complete too: ``result.json`` holds ``stable: false`` with the reason, the step and the particle
+ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
+file is written through pbf_cuda.files.atomic_path: a temporary name, fsync, ``os.replace``, fsync
+of the folder.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_params
+from bench.store.files import save_frame, save_npz, sha256_file
+from bench.store.identity import RUN_FORMAT, RunSpec
+from bench.store.lock import locked
+from bench.store.manifest import finished_files, info_checksum, manifest, now, quarantine, verify_run
+from bench.store.result import RunResult
+from pbf_cuda.files import atomic_write_json, remove_stale_temps
+from pbf_cuda.protocol import InstabilityError
+
+__all__ = ["execute", "execute_summary", "cached_result"]
+
+
+def merge_timings(base: dict, extra: dict) -> dict:
+    out = {k: dict(v) for k, v in base.items()}
+    for phase, t in extra.items():
+        cur = out.setdefault(phase, {"total_ms": 0.0, "count": 0})
+        cur["total_ms"] += float(t["total_ms"])
+        cur["count"] += int(t["count"])
+    for t in out.values():
+        t["mean_ms"] = t["total_ms"] / t["count"] if t["count"] else float("nan")
+    return out
+
+
+class _Run:
+    """One attempt at a spec inside its (locked) directory."""
+
+    def __init__(self, spec: RunSpec, identity: dict, key: str, directory: Path, quiet: bool,
+                 on_step: Callable[[int], None] | None):
+        self.spec, self.identity, self.identity_key, self.dir = spec, identity, key, directory
+        self.adapter = ADAPTERS[spec.solver]
+        self.quiet, self.on_step = quiet, on_step
+        self.partial = directory / "partial"
+        self.rejects_logged = 0      # split_capacity_rejects at the last capacity warning
+        self.rejects = 0             # split_capacity_rejects after the latest step
+        self.refused = False         # True while the simulation is being created (nothing made yet)
+
+    def log(self, message: str) -> None:
+        with open(self.dir / "log.txt", "a") as fh:
+            fh.write(f"{now()} {message}\n")
+
+    # -- progress bookkeeping ------------------------------------------------------------------
+    def _resume(self):
+        """(sim, progress) from checkpoint.npz + progress.json when they belong to this run and agree,
+        else (None, fresh); whatever fails a check is moved to the quarantine folder (and logged)."""
+        fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0}
+        ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
+        attempt = ["checkpoint.npz", "progress.json", "partial"]
+        if not self.adapter.can_checkpoint or not (ckpt.exists() or prog.exists() or self.partial.exists()):
+            return None, fresh
+        if not (ckpt.exists() and prog.exists()):
+            quarantine(self.dir, attempt, "checkpoint.npz and progress.json are not both present")
+            return None, fresh
+        try:
+            progress = json.loads(prog.read_text())
+            if not isinstance(progress, dict):
+                raise ValueError("not a JSON object")
+            step = progress["step"]
+            for name in ("step_wall_s", "timed_wall_s", "max_particles"):
+                float(progress[name])
+            if not isinstance(progress["timings"], dict) or not isinstance(step, int):
+                raise ValueError("bad timings or step")
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            quarantine(self.dir, attempt, f"progress.json unreadable: {type(exc).__name__}: {str(exc)[:80]}")
+            return None, fresh
+        if progress.get("key") != self.identity_key:
+            quarantine(self.dir, attempt, "progress.json belongs to another run (key "
+                                          f"{str(progress.get('key'))[:16]}, this run {self.identity_key[:16]})")
+            return None, fresh
+        if progress.get("checkpoint_sha256") != sha256_file(ckpt):
+            quarantine(self.dir, attempt, "checkpoint.npz does not match the sha256 in progress.json")
+            return None, fresh
+        try:
+            sim = self.adapter.load(ckpt, self.spec)
+        except Exception as exc:  # a damaged checkpoint: start over, say so
+            quarantine(self.dir, attempt, f"checkpoint unreadable ({type(exc).__name__}: {str(exc)[:80]})")
+            return None, fresh
+        expected = self.adapter.expected_scene(self.spec)
+        if expected is not None and scene_params(sim.scene) != scene_params(expected):
+            quarantine(self.dir, attempt, "the checkpoint's scene differs from the run's")
+            return None, fresh
+        if sim.step_count != step:
+            quarantine(self.dir, attempt, f"checkpoint step {sim.step_count} != progress step {step}")
+            return None, fresh
+        try:
+            rows = {name: self._partial_rows(name, step) for name in ("stats", "profiles", "steps")}
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            quarantine(self.dir, attempt, f"partial diagnostics unreadable: {type(exc).__name__}: {str(exc)[:80]}")
+            return None, fresh
+        self.resumed_rows = rows
+        return sim, progress
+
+    def _partial_rows(self, name: str, upto: int) -> list[dict]:
+        path = self.partial / f"{name}.json"
+        if not path.exists():
+            return []
+        rows = json.loads(path.read_text())
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise ValueError(f"partial/{name}.json: expected a list of rows")
+        return [r for r in rows if r["step"] <= upto]
+
+    def _checkpoint(self, sim, progress: dict) -> None:
+        for name, rows in (("stats", self.rows), ("profiles", self.profile_rows), ("steps", self.step_rows)):
+            atomic_write_json(self.partial / f"{name}.json", rows, sort_keys=False)  # keeps column order
+        self.adapter.save(sim, self.dir / "checkpoint.npz")
+        progress = {**progress, "key": self.identity_key,
+                    "checkpoint_sha256": sha256_file(self.dir / "checkpoint.npz")}
+        atomic_write_json(self.dir / "progress.json", progress)
+        self.log(f"checkpoint at step {progress['step']}")
+
+    # -- one diagnostics row -------------------------------------------------------------------
+    def _record(self, sim, stats_row: dict | None, snapshot: bool) -> None:
+        step = sim.step_count
+        state = self.adapter.state(sim)
+        bad = nonfinite_fields(state)
+        if bad:
+            ids = nonfinite_ids(state) if "id" in state else []
+            raise InstabilityError(step, f"NaN/Inf in {', '.join(bad)}", ids, step - 1)
+        if snapshot:
+            save_npz(self.dir / "snapshots" / f"step_{step:06d}.npz",
+                      {**state, "step": np.int64(step), "time_s": np.float64(sim.time)})
+        if not self.spec.diagnostics:
+            return
+        import pandas as pd
+        row, profiles = self.adapter.diagnostics(sim, self.spec, state)
+        when = {"step": step, "time_s": float(sim.time)}
+        extra = {k: v for k, v in (stats_row or {}).items() if k not in row}  # the shared statistics win
+        self.rows.append({**when, **row, **extra})
+        if profiles is not None:
+            for prof in pd.DataFrame(profiles).to_dict("records"):
+                self.profile_rows.append({**when, **prof})
+
+    # -- the loop --------------------------------------------------------------------------------
+    def run(self) -> RunResult:
+        spec = self.spec
+        started = time.perf_counter()
+        self.resumed_rows = {}
+        sim, progress = self._resume()
+        resumed_from = progress["step"] if sim is not None else None
+        self.rows = self.resumed_rows.get("stats", [])
+        self.profile_rows = self.resumed_rows.get("profiles", [])
+        self.step_rows = self.resumed_rows.get("steps", [])
+        if sim is None:
+            self.refused = True            # a failure before the simulation exists leaves nothing behind
+            sim = self.adapter.create(spec)
+            self.refused = False
+            self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, seed {spec.seed}, "
+                     f"backend {getattr(sim, 'backend', spec.backend)}")
+        else:
+            self.log(f"resume from checkpoint at step {resumed_from}")
+        atomic_write_json(self.dir / "config.json", {
+            "identity": self.identity, "key": self.identity_key,
+            "checkpoint_every": spec.checkpoint_interval, "diagnostic_steps": spec.diagnostic_steps(),
+            "snapshot_steps": spec.snapshot_steps(), "created": now()})
+        base_timings = progress["timings"]
+        step_wall = float(progress["step_wall_s"])
+        timed_wall = float(progress["timed_wall_s"])      # wall time of the steps after the warm-up
+        max_particles = max(int(progress["max_particles"]), self.adapter.size(sim))
+        diag_steps = set(spec.diagnostic_steps())
+        snap_steps = set(spec.snapshot_steps())
+        total = spec.total_steps
+        chunk = 1 if spec.record_steps else 10
+        failure = None
+        from pbf_cuda.progress import progress_bar as tqdm
+        bar = tqdm(total=total, initial=sim.step_count, desc=f"{spec.solver} {spec.scene.name}", unit="step",
+                   disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
+        try:
+            if sim.step_count == 0 and (0 in diag_steps or 0 in snap_steps):
+                self._record(sim, self.adapter.step_row(sim), 0 in snap_steps)
+            while sim.step_count < total:
+                s0 = sim.step_count
+                targets = [total, s0 + chunk] + [s for s in diag_steps | snap_steps if s > s0]
+                if self.adapter.can_checkpoint:
+                    targets.append((s0 // spec.checkpoint_interval + 1) * spec.checkpoint_interval)
+                if s0 < spec.warmup_steps:
+                    targets.append(spec.warmup_steps)
+                n = min(targets) - s0
+                t0 = time.perf_counter()
+                try:
+                    sim.step(n)
+                finally:                       # a failing step's time counts too
+                    elapsed = time.perf_counter() - t0
+                    step_wall += elapsed
+                    if s0 >= spec.warmup_steps:
+                        timed_wall += elapsed
+                s = sim.step_count
+                row = self.adapter.step_row(sim)
+                self.adapter.check(sim, spec, row)
+                max_particles = max(max_particles, self.adapter.size(sim))
+                self._note_capacity(sim, row)
+                if spec.record_steps:
+                    self.step_rows.append(row)
+                if s == spec.warmup_steps:
+                    sim.reset_timings()
+                    base_timings = {}
+                if s in diag_steps or s in snap_steps:
+                    self._record(sim, row, s in snap_steps)
+                if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and s < total:
+                    self._checkpoint(sim, {"step": s, "timings": merge_timings(base_timings, sim.timings()),
+                                           "step_wall_s": step_wall, "timed_wall_s": timed_wall,
+                                           "max_particles": max_particles})
+                bar.update(n)
+                if self.on_step is not None:
+                    self.on_step(s)
+        except InstabilityError as exc:
+            failure = exc
+            self.log(f"UNSTABLE: {exc}")
+        except BaseException as exc:
+            self.log(f"interrupted at step {sim.step_count}: {exc!r}")
+            raise
+        finally:
+            bar.close()
+        timings = merge_timings(base_timings, sim.timings())
+        return self._finish(sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
+                            time.perf_counter() - started)
+
+    def _note_capacity(self, sim, row: dict) -> None:
+        """Log (and print) when the adaptive capacity first turns splits away, then each tenfold growth."""
+        rejects = int(row.get("split_capacity_rejects", 0) or 0)
+        logged = self.rejects_logged
+        if rejects > 0 and (logged == 0 or rejects >= 10 * logged):
+            message = (f"adaptive capacity full at step {sim.step_count}: {rejects} split(s) turned away so far "
+                       f"({sim.capacity} particle slots, adaptive.capacity = "
+                       f"{sim.scene.adaptive.capacity}); the run goes on without them")
+            self.log(message)
+            if not self.quiet:
+                from pbf_cuda.progress import progress_bar as tqdm
+                tqdm.write(f"warning: {message}")
+            self.rejects_logged = rejects
+        self.rejects = rejects
+
+    def _finish(self, sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
+                wall) -> RunResult:
+        import pandas as pd
+        spec = self.spec
+        save_frame(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
+                               columns=["phase", "total_ms", "count", "mean_ms"]), self.dir / "timings.csv")
+        if self.rows:
+            save_frame(pd.DataFrame(self.rows), self.dir / "stats.parquet")
+        if self.profile_rows:
+            save_frame(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
+        if self.step_rows:
+            save_frame(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
+        from bench.environment import device_description
+        backend = getattr(sim, "backend", None) or self.identity["backend"]
+        info = {
+            "format": RUN_FORMAT, "key": self.identity_key, "solver": spec.solver, "scene": spec.scene.name,
+            "seed": spec.seed, "steps_requested": spec.total_steps,
+            "stable": failure is None,
+            "reason": None if failure is None else failure.reason,
+            "step": sim.step_count if failure is None else failure.step,
+            "particles": [] if failure is None else list(getattr(failure, "particles", []))[:16],
+            "last_good_step": sim.step_count if failure is None else failure.last_good_step,
+            "time_s": float(sim.time) if failure is None else None,
+            **self.adapter.result_fields(max_particles, self.rejects),
+            "step_wall_s": step_wall, "wall_s": wall, "resumed_from": resumed_from,
+            "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,
+            "step_ms": 1e3 * timed_wall / max(1, sim.step_count - spec.warmup_steps) if failure is None else None,
+            "backend": backend, "device": device_description(backend),
+            "code": self.identity["code"], "finished": now(),
+        }
+        if failure is None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.dir / "progress.json")
+        info["manifest"] = manifest(self.dir)          # checked whenever the result is served
+        info["checksum"] = info_checksum(info)
+        atomic_write_json(self.dir / "result.json", info)
+        info = {k: v for k, v in info.items() if k not in ("manifest", "checksum")}
+        self.log("finished " + ("stable" if failure is None else f"UNSTABLE at step {failure.step}")
+                 + f" ({step_wall:.2f} s in steps)")
+        return RunResult(self.dir, info, cached=False)
+
+
+def execute(spec: RunSpec, root: str | Path | None = None, *, quiet: bool = False,
+            on_step: Callable[[int], None] | None = None) -> RunResult:
+    """Run `spec` (or return its stored result without any work).  See the module docstring.
+
+    A stored result is served only when it passes verify_run; otherwise its files go to the quarantine
+    folder (logged) and the run is computed again.  A run that cannot start (no such backend, too large
+    for the memory) raises before its directory is made.
+
+    on_step(step) is called after every chunk of steps (tests use it to simulate a crash)."""
+    identity = spec.identity()
+    key = spec.key(identity)
+    directory = spec.directory(root, key)
+    if (directory / "result.json").exists() and not verify_run(directory, key):
+        return RunResult.load(directory, cached=True)
+    ADAPTERS[spec.solver].preflight(spec)
+    created = not directory.exists()
+    directory.mkdir(parents=True, exist_ok=True)
+    with locked(directory):
+        remove_stale_temps(directory, owned=True)       # we hold the lock: no writer is in here
+        if (directory / "result.json").exists():
+            problems = verify_run(directory, key)
+            if not problems:
+                return RunResult.load(directory, cached=True)
+            quarantine(directory, finished_files(directory), "; ".join(problems[:3]))
+        attempt = _Run(spec, identity, key, directory, quiet, on_step)
+        try:
+            return attempt.run()
+        except BaseException:
+            if attempt.refused and created:
+                shutil.rmtree(directory, ignore_errors=True)
+            raise
+
+
+def execute_summary(spec: RunSpec, root: str | Path | None = None) -> dict:
+    """execute() for a worker process: quiet, returns the small summary dict."""
+    return execute(spec, root, quiet=True).summary()
+
+
+def cached_result(spec: RunSpec, root: str | Path | None = None) -> RunResult | None:
+    """The stored result of `spec` when it is complete and passes verify_run, else None (execute then
+    moves a damaged one aside and recomputes it)."""
+    identity = spec.identity()
+    key = spec.key(identity)
+    directory = spec.directory(root, key)
+    if (directory / "result.json").exists() and not verify_run(directory, key):
+        return RunResult.load(directory, cached=True)
+    return None

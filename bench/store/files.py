@@ -1,0 +1,39 @@
+"""Atomic writers of the run store (tables, arrays) on pbf_cuda.files.atomic_path, and file checksums."""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from pbf_cuda.files import atomic_path
+
+__all__ = ["save_frame", "save_npz", "sha256_file"]
+
+
+def save_frame(frame, path: str | Path) -> Path:
+    """Write a pandas DataFrame to ``.csv`` or ``.parquet`` (by suffix, no index) atomically; returns the path."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".csv", ".parquet"):
+        raise ValueError(f"{path}: expected a .csv or .parquet file name")
+    with atomic_path(path) as tmp:
+        if suffix == ".csv":
+            frame.to_csv(tmp, index=False)
+        else:
+            frame.to_parquet(tmp, index=False)
+    return path
+
+
+def save_npz(path: Path, arrays: dict) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
+def sha256_file(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
