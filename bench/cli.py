@@ -4,6 +4,7 @@
     cloudpbf run growing --steps 50          one run of a scene (particles or --solver grid)
     cloudpbf table1                          the paper's Table 1, measured here
     cloudpbf compare growing                 particles (non-adaptive, adaptive) against the grid, >= 5 seeds
+    cloudpbf cycling                         paper example 2: clouds' disappear/reappear cycles, both solvers
     cloudpbf sweep                           run time against error, Pareto front
     cloudpbf stress                          stability map (dt, iterations, heating, alpha*dt)
     cloudpbf scaling                         ms per step against particle and cell counts
@@ -358,6 +359,22 @@ def compare(
             raise click.UsageError(str(exc)) from None
     typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
     typer.echo(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
+
+
+@app.command()
+def cycling(
+    seeds: Annotated[int, typer.Option(min=3, max=1000, help="noise seeds per mode (>= 3)")] = 3,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Paper example 2: count the clouds' disappear/reappear cycles in both solvers (docs/cycling.md)."""
+    from bench.studies.cycling import COLUMNS, run_cycling
+    with _context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+        with _refusals():
+            frames = run_cycling(ctx, seeds)
+    typer.echo(frames["cycling_cycles"][list(COLUMNS)].to_string(index=False))
+    typer.echo(f"wrote {ctx.data / 'cycling_cycles.csv'}, cycling_timeseries.csv")
 
 
 @app.command()
