@@ -37,7 +37,7 @@ for step in "$@"; do
       timeout 300 python3 -m bench.cli adaptive-cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
       python3 -c "import pandas as pd, sys; pd.concat([pd.read_csv('/tmp/ac45.csv'), pd.read_csv('/tmp/ac40.csv')]).to_csv(sys.argv[1], index=False)" \
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
-    constant_gravity) timeout 400 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
+    constant_gravity) timeout 600 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
     cycling)  # paper example 2 at the scene files' size (930k particles, 3600 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
