@@ -210,3 +210,24 @@ def test_clouds_disappear_and_reappear_at_cpu_scale(kind):
     assert counted["peak_cover"] > 0.1                     # clouds form in the first afternoon ...
     assert counted["min_cover"] < 0.2 * counted["peak_cover"]   # ... vanish at night ...
     assert counted["cycles"] >= 1                          # ... and come back the next day
+
+
+def test_report_shows_the_cycling_study(tmp_path):
+    from bench.report import build_report
+    data = tmp_path / "data"
+    data.mkdir()
+    t = np.arange(0.0, 2400.0, 40.0)
+    rows, cycles = [], []
+    for solver, mode in (("particles", "non-adaptive"), ("particles", "adaptive"), ("grid", "grid")):
+        for seed in range(3):
+            cover = np.maximum(0.0, np.sin(2 * np.pi * t / 1200.0)) * (0.4 + 0.05 * seed)
+            rows += [{"solver": solver, "mode": mode, "seed": seed, "time_s": ti, "step": int(ti / 8),
+                      "cloud_cover": c, "lwp_mean": 0.1 * c, "cloud_top": 1000.0 * (c > 0)} for ti, c in zip(t, cover)]
+            cycles.append({"solver": solver, "mode": mode, "seed": seed, **count_cycles(cover), "device": "cpu",
+                           "commit": "abc"})
+    import pandas as pd
+    pd.DataFrame(rows).to_csv(data / "cycling_timeseries.csv", index=False)
+    pd.DataFrame(cycles).to_csv(data / "cycling_cycles.csv", index=False)
+    section = build_report(tmp_path).read_text().split('<section id="compare"', 1)[1].split("<section", 1)[0]
+    assert "clouds that disappear and reappear" in section and "cycling_cycles.csv" in section
+    assert "data:image/png" in section and "could not build" not in section
