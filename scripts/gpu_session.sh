@@ -39,7 +39,7 @@ for step in "$@"; do
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
     constant_gravity) timeout 600 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
-    cycling)  # paper example 2 at the scene files' size (930k particles, 3600 s), 3 seeds x 3 modes
+    cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
     compare|stress|sweep)

@@ -6,7 +6,7 @@ pressure and changes nothing (the grid baseline's exact projection removes it co
 can only act through the solver's finite stiffness.  This study measures that: the `growing` scene
 (eq. 6's cloud weight k_g = g, no constant gravity) with a constant gravity g_c of each given size
 added, beside the shipped `cycling` scene (no constant gravity; time-of-day heating with large-scale
-relaxation and rain, docs/cycling.md, run for its own 1800 steps).  For each run it records
+relaxation and rain, docs/cycling.md, run for its own 2100 steps).  For each run it records
 whether it stayed stable, the mean density error and largest speed of the last step, and the cloud
 cover (fraction of columns with cloud, bench.statistics) over time: when it first appears, its
 largest value, and whether it fell back to zero afterwards and came back (``vanished_and_returned``).

@@ -10,7 +10,7 @@ with one rule (:func:`count_cycles`).  Outputs in OUT/data:
 * cycling_timeseries.csv: solver, mode, seed, time_s, step, cloud_cover, lwp_mean, cloud_top,
   total_water, device, commit
 
-Scales: ``gpu`` runs the scene files as they ship (930k particles, 3600 s).  Every other scale runs
+Scales: ``gpu`` runs the scene files as they ship (930k particles, 4200 s).  Every other scale runs
 the CPU cycle: the same physics in a 1200 x 1600 x 1200 m box at 100 m spacing (about 2,300
 particles, a 12 x 16 x 12 grid), dt = 8 s and 2400 s, a few minutes on two cores (CPU_OVERRIDES).
 
