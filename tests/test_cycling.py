@@ -174,8 +174,9 @@ def test_count_cycles_counts_built_cycles(n, peak, low, high):
         series += [low * peak, 0.3 * peak, high * peak]
     out = count_cycles(series)
     assert out["cycles"] == n and out["peak_cover"] == pytest.approx(peak)
-    # a dip that stays above 20% of the peak is not a cycle
+    # a dip that stays above 20% of the peak is not a cycle, nor is the flicker of a cover below 5%
     assert count_cycles([0.0, peak, 0.25 * peak, peak])["cycles"] == 0
+    assert count_cycles([0.0, 0.02, 0.0, 0.02, 0.0, 0.02])["cycles"] == 0
 
 
 def cover_series(kind, seconds=2400.0, every=5):

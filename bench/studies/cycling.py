@@ -33,6 +33,7 @@ MODES = ("non-adaptive", "adaptive", "grid")
 MIN_SEEDS = 3
 DISAPPEAR = 0.2      # a cycle: cover below DISAPPEAR x peak ...
 REAPPEAR = 0.5       # ... then back above REAPPEAR x peak
+MIN_PEAK = 0.05      # a run whose cover never reaches this has no cycles (one flickering column is no cloud field)
 COLUMNS = ("solver", "mode", "seed", "cycles", "peak_cover", "min_cover", "device", "commit")
 SERIES_COLUMNS = ("cloud_cover", "lwp_mean", "cloud_top", "total_water")
 # The CPU cycle (docs/cycling.md): a small box with the shipped scene's physics; the time step is
@@ -43,13 +44,13 @@ CPU_SNAPSHOT_EVERY = 5
 GPU_SNAPSHOT_EVERY = 25
 
 
-def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR) -> dict:
+def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR, min_peak: float = MIN_PEAK) -> dict:
     """Full disappear/reappear cycles of a cloud-cover series (fractions in [0, 1], in time order).
 
     peak = the series' largest value.  The count starts once the cover first reaches reappear x peak;
     a cycle is then a fall below disappear x peak followed by a climb back to reappear x peak or more.
-    Returns cycles, peak_cover, min_cover (the smallest value after the start; the peak when the series
-    never starts, 0 for an empty or cloudless series)."""
+    A series whose peak is below `min_peak` counts no cycles (at CPU scale one column is 0.7% of the sky).
+    Returns cycles, peak_cover, min_cover (the smallest value after the start; 0 for a cloudless series)."""
     c = np.asarray(cover, dtype=np.float64)
     if not (0.0 <= disappear < reappear <= 1.0):
         raise ValueError(f"disappear = {disappear}, reappear = {reappear}: need 0 <= disappear < reappear <= 1")
@@ -60,7 +61,7 @@ def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR
         return {"cycles": 0, "peak_cover": 0.0, "min_cover": 0.0}
     start = int(np.argmax(c >= reappear * peak))
     cycles, down = 0, False
-    for value in c[start:]:
+    for value in (c[start:] if peak >= min_peak else ()):
         if not down and value < disappear * peak:
             down = True
         elif down and value >= reappear * peak:
