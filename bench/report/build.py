@@ -484,7 +484,8 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 
 CYCLING_PANELS = (("cloud_cover", "cloud cover (fraction of columns)"), ("lwp_mean", "mean liquid water path (kg/m2)"),
-                  ("cloud_top", "cloud top (m)"))
+                  ("cloud_top", "cloud top (m)"), ("rain_total", "rain removed since t = 0 (kg, eq. C3)"),
+                  ("water_relaxation_total", "vapor added by the relaxation since t = 0 (kg, eq. C2)"))
 
 
 def _cycling(inp: Inputs, sec: Section) -> None:
@@ -497,7 +498,8 @@ def _cycling(inp: Inputs, sec: Section) -> None:
                     "time-of-day ground heating, relaxation toward the initial profiles and rain.")
     if ts is not None:
         sec.add("image", plots.timeseries_plot(ts, CYCLING_PANELS), caption=(
-            "The cycling scene: cover, liquid water path and cloud top against time for the three solvers; "
+            "The cycling scene: cover, liquid water path, cloud top and the water budget's sinks and sources "
+            "(docs/cycling.md C4: total water = initial + relaxation - rain) against time for the three solvers; "
             "line = mean over seeds, band = min..max over seeds."))
     if cycles is not None:
         rows = []

@@ -8,7 +8,8 @@ with one rule (:func:`count_cycles`).  Outputs in OUT/data:
 * cycling_cycles.csv: one row per solver, mode and seed: solver, mode, seed, cycles, peak_cover,
   min_cover, device, commit (and stable, steps, run_dir)
 * cycling_timeseries.csv: solver, mode, seed, time_s, step, cloud_cover, lwp_mean, cloud_top,
-  total_water, device, commit
+  total_water (of the deposit grid), the water budget's running sums rain_total and
+  water_relaxation_total (kg, docs/cycling.md C4), heat_latent_total (K, particles only), device, commit
 
 Scales: ``gpu`` runs the scene files as they ship (930k particles, 4200 s).  Every other scale runs
 the CPU cycle: the same physics in a 1200 x 1600 x 1200 m box at 100 m spacing (about 2,300
@@ -35,7 +36,10 @@ DISAPPEAR = 0.2      # a cycle: cover below DISAPPEAR x peak ...
 REAPPEAR = 0.5       # ... then back above REAPPEAR x peak
 MIN_PEAK = 0.05      # a run whose cover never reaches this has no cycles (one flickering column is no cloud field)
 COLUMNS = ("solver", "mode", "seed", "cycles", "peak_cover", "min_cover", "device", "commit")
-SERIES_COLUMNS = ("cloud_cover", "lwp_mean", "cloud_top", "total_water")
+SERIES_COLUMNS = ("cloud_cover", "lwp_mean", "cloud_top", "total_water", "rain_total", "water_relaxation_total",
+                  "heat_latent_total")
+# The particle solver's name of a budget column -> the grid's (both kg: rho0 = 1 kg/m^3 in the cloud scenes)
+RENAMED = {"water_rain_total": "rain_total"}
 # The CPU cycle (docs/cycling.md): a small box with the shipped scene's physics; the time step is
 # four times the scene's (the forcing is integrated exactly, and N dt stays below 0.1).
 CPU_OVERRIDES = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "time.dt": 8.0,
@@ -112,6 +116,7 @@ def run_cycling(ctx: StudyContext, seeds: int = MIN_SEEDS, scene_name: str = "cy
                      "commit": ctx.commit, "stable": res.stable, "steps": res.step, "scene": spec.scene.name,
                      "run_dir": str(res.path)})
         if len(stats):
+            stats = stats.rename(columns=RENAMED)
             frame = stats[["time_s", "step", *(c for c in SERIES_COLUMNS if c in stats.columns)]].copy()
             for i, (key, value) in enumerate((("solver", solver), ("mode", mode), ("seed", seed))):
                 frame.insert(i, key, value)
