@@ -16,7 +16,14 @@ Discretisation (Miyazaki et al. 2002 / Dobashi et al. 2008 style):
   buoyancy and gravity (eq. 6, plus pbf.gravity), adiabatic cooling (eq. 7),
   phase transition (eq. 9-10) with latent heat (eq. 11), integrated exactly
   for the linearised system (stable for any alpha*dt); vorticity confinement
-  f = eps (N x omega) with eps = pbf.vorticity in m/s.
+  f = eps (N x omega) with eps = pbf.vorticity in m/s;
+* large-scale forcing of the cycling example (docs/cycling.md), as in the particle
+  solver: time-of-day heating (eq. C1), exact-exponential relaxation of theta' and
+  v toward 0 and v0(y) (C2), autoconversion of cloud water above q_c0 into rain
+  (C3).  The state carries the clock ``time`` (s) and the running budget sums
+  ``rain_total``, ``water_relaxation_total`` (kg/kg m^3, like ``total_water``)
+  and ``heat_relaxation_total`` (K m^3) as 0-d arrays, so water closes (C4):
+  total_water(t) = total_water(0) + water_relaxation_total - rain_total.
 
 Temperature: the grid advects theta' = T + Gamma_d y - theta0(y), the
 perturbation of the potential temperature theta = T + Gamma_d y from the
@@ -52,7 +59,10 @@ from jax_cfd.base import grids as cfd_grids  # noqa: E402
 __all__ = ["Params", "params_from_scene", "initial_state", "make_aux", "advect", "physics", "pressure_project",
            "full_step", "step_with_budget", "budget_terms", "BUDGET_TERMS", "phase_transition", "STATE_KEYS"]
 
-STATE_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
+FIELD_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
+# 0-d entries of the state: the clock and the forcing's running budget sums (docs/cycling.md C4)
+SCALAR_KEYS = ("time", "rain_total", "water_relaxation_total", "heat_relaxation_total")
+STATE_KEYS = FIELD_KEYS + SCALAR_KEYS
 UP = 1  # y is up
 
 
@@ -83,6 +93,10 @@ class Params:
     vapor_profile: str
     vorticity: float
     gravity: tuple
+    diurnal_period: float = 0.0           # P of eq. C1, s (0: constant heating)
+    relaxation_time: float = 0.0          # tau of eq. C2, s (0: off)
+    autoconversion_rate: float = 0.0      # k_auto of eq. C3, 1/s (0: off)
+    autoconversion_threshold: float = 0.0  # q_c0 of eq. C3, kg/kg
     cfl_target: float = 0.8
     max_substeps: int = 16
     rest_density: float = 1.0   # kg/m^3: a cell's mass is rest_density * cell volume (budgets)
@@ -109,6 +123,8 @@ def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
         heating_patch_radius=float(a.heating_patch_radius),
         initial_vapor_ratio=a.initial_vapor_ratio, vapor_profile=a.vapor_profile,
         vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
+        diurnal_period=float(a.diurnal_period), relaxation_time=float(a.relaxation_time),
+        autoconversion_rate=float(a.autoconversion_rate), autoconversion_threshold=float(a.autoconversion_threshold),
         cfl_target=float(cfl_target), max_substeps=int(max_substeps),
         rest_density=float(scene.particles.rest_density))
 
@@ -131,6 +147,30 @@ def environment_temperature(p: Params, y):
 
 def saturation(p: Params, T):
     return p.saturation_a * jnp.exp(p.saturation_b / (T + p.saturation_c))
+
+
+def initial_vapor(p: Params, y):
+    """v0(y) of section 5 (host, float64): k_v times saturation at T0(y) ('relative') or at the ground."""
+    y = np.asarray(y, dtype=np.float64)
+    t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.ground_temperature)
+    return p.initial_vapor_ratio * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+
+
+def diurnal_factor(t, period):
+    """Time-of-day factor of eq. C1, f(t) = max(0, sin(2 pi t / P)); 1 when period <= 0 (constant)."""
+    if not period > 0.0:
+        return jnp.ones_like(t) if hasattr(t, "dtype") else 1.0
+    return jnp.maximum(0.0, jnp.sin(2.0 * math.pi * t / period))
+
+
+def diurnal_integral(t, period):
+    """Closed form of int_0^t f(s) ds for eq. C1 (s * P): P / pi per full period, the rest of the last one
+    (P / (2 pi)) (1 - cos(2 pi r / P)) for r = t mod P < P / 2, else P / pi."""
+    if not period > 0.0:
+        return float(t)
+    full, r = divmod(float(t), float(period))
+    part = period / math.pi if r >= period / 2 else period / (2 * math.pi) * (1.0 - math.cos(2 * math.pi * r / period))
+    return full * period / math.pi + part
 
 
 def _bshape(axis, n):
@@ -157,8 +197,10 @@ def make_aux(p: Params, dtype):
         pattern = np.zeros_like(X)
     mask = (yc < p.heating_depth).astype(np.float64)
     heat = p.heating_rate * pattern[:, None, :] * mask[None, :, None]
+    v0 = initial_vapor(p, yc).reshape(_bshape(UP, p.shape[UP]))
     return {
         "t0": jnp.asarray(t0, dtype=dtype),
+        "v0": jnp.asarray(v0, dtype=dtype),
         "heat": jnp.asarray(heat, dtype=dtype),
         "inv_eig": laplacian_eigenvalues(p.shape, p.steps, p.periodic, dtype),
     }
@@ -169,15 +211,16 @@ def initial_state(p: Params, dtype, wave=None):
     xc, yc, zc = cell_centers(p)
     shape = p.shape
     t0 = environment_temperature(p, yc)
-    t_ref = t0 if p.vapor_profile == "relative" else np.full_like(yc, p.ground_temperature)
-    vap = p.initial_vapor_ratio * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+    vap = initial_vapor(p, yc)
     vapor = np.broadcast_to(vap.reshape(_bshape(UP, shape[UP])), shape)
     zeros = np.zeros(shape)
     ux, uy, uz = zeros, zeros, zeros
     if wave is not None and wave.amplitude > 0.0:
         ux, uy = wave_velocity(p, wave)
     st = {"ux": ux, "uy": uy, "uz": uz, "theta": zeros, "vapor": vapor, "cloud": zeros}
-    return {k: jnp.asarray(np.ascontiguousarray(v), dtype=dtype) for k, v in st.items()}
+    out = {k: jnp.asarray(np.ascontiguousarray(v), dtype=dtype) for k, v in st.items()}
+    out.update({k: jnp.zeros((), dtype=dtype) for k in SCALAR_KEYS})   # 0-d (ascontiguousarray makes 1-d)
+    return out
 
 
 def wave_velocity(p: Params, wave):
@@ -295,7 +338,7 @@ def advect(state, aux, p: Params):
     theta, vapor, cloud, ux, uy, uz = lax.fori_loop(0, nsub, body, fields)
     uy_c = _to_center(vel0[UP], UP, p.periodic[UP])
     theta = theta - dt * (p.dry_lapse_rate - p.lapse_rate) * uy_c
-    return {"ux": ux, "uy": uy, "uz": uz, "theta": theta, "vapor": vapor, "cloud": cloud}, nsub
+    return {**state, "ux": ux, "uy": uy, "uz": uz, "theta": theta, "vapor": vapor, "cloud": cloud}, nsub
 
 
 def phase_transition(p: Params, T, vapor, cloud, dt):
@@ -348,9 +391,21 @@ def physics(state, aux, p: Params):
         f = vorticity_force(vel, p)
         vel = [u + dt * _to_faces(fa, a, per[a]) for a, (u, fa) in enumerate(zip(vel, f))]
     theta, vapor, cloud = state["theta"], state["vapor"], state["cloud"]
-    # eq. 5: ground heating (aux["heat"] = S_e * max(0, 1 + a * noise) below heating_depth, else 0)
+    clock = state["time"]
+    vol = p.cell_volume
+    out = {}
+    # eq. 5: ground heating (aux["heat"] = S_e * max(0, 1 + a * noise) below heating_depth, else 0),
+    # times the time-of-day factor of eq. C1 at the step's mid-time
     if p.heating_rate > 0.0:
-        theta = theta + dt * aux["heat"]
+        theta = theta + (dt * diurnal_factor(clock + 0.5 * dt, p.diurnal_period)) * aux["heat"]
+    # eq. C2: relaxation toward the initial profiles, exact over the step (theta' = T - T0(y) -> 0, v -> v0)
+    if p.relaxation_time > 0.0:
+        decay = math.exp(-dt / p.relaxation_time)
+        theta_new = theta * decay
+        vapor_new = jnp.maximum(aux["v0"] + (vapor - aux["v0"]) * decay, 0.0)
+        out["heat_relaxation_total"] = state["heat_relaxation_total"] + jnp.sum(theta_new - theta) * vol
+        out["water_relaxation_total"] = state["water_relaxation_total"] + jnp.sum(vapor_new - vapor) * vol
+        theta, vapor = theta_new, vapor_new
     # eq. 6: buoyancy - cloud weight (at cell centres, averaged onto the vertical faces) + pbf.gravity
     t0 = aux["t0"]
     b = p.buoyancy * theta / t0 - p.cloud_gravity * cloud
@@ -363,7 +418,15 @@ def physics(state, aux, p: Params):
     T = t0 + theta
     vapor, cloud, dT = phase_transition(p, T, vapor, cloud, dt)
     theta = theta + dT
-    return {"ux": vel[0], "uy": vel[1], "uz": vel[2], "theta": theta, "vapor": vapor, "cloud": cloud}
+    # eq. C3: autoconversion, w above q_c0 decays at k_auto (exact over the step) and leaves as rain;
+    # its latent heat was released at condensation, so T does not change
+    if p.autoconversion_rate > 0.0:
+        q0 = p.autoconversion_threshold
+        cloud_new = jnp.where(cloud > q0, q0 + (cloud - q0) * math.exp(-p.autoconversion_rate * dt), cloud)
+        out["rain_total"] = state["rain_total"] + jnp.sum(cloud - cloud_new) * vol
+        cloud = cloud_new
+    out["time"] = clock + dt
+    return {**state, **out, "ux": vel[0], "uy": vel[1], "uz": vel[2], "theta": theta, "vapor": vapor, "cloud": cloud}
 
 
 def pressure_project(state, aux, p: Params):

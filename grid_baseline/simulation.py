@@ -393,7 +393,9 @@ class GridSimulation:
             meta = json.loads(bytes(z["meta"]).decode())
             if meta.get("version") != SNAPSHOT_VERSION:
                 raise ValueError(f"{path}: snapshot version {meta.get('version')} != {SNAPSHOT_VERSION}")
-            raw = {k: z[f"raw_{k}"] for k in STATE_KEYS}
+            # A snapshot from before the forcing's scalars existed: clock from the step, sums from 0.
+            raw = {k: z[f"raw_{k}"] if f"raw_{k}" in z.files else
+                   np.asarray(meta["time"] if k == "time" else 0.0) for k in STATE_KEYS}
         scene = scene_from_dict(meta["scene"], source=str(path))
         sim = cls(scene, resolution=meta["shape"], dtype=dtype or meta["dtype"], device=device, timing=timing,
                   cfl_target=meta["cfl_target"], max_substeps=meta["max_substeps"])
@@ -479,6 +481,11 @@ def _diagnostics(state, aux, p):
         "mean_temperature": jnp.mean(t0 + theta),
         "mean_theta_perturbation": jnp.mean(theta),
         "heat": jnp.sum(theta - p.latent_heat * w) * vol,   # sum of T + Gamma_d y - Q w minus the environment's theta
+        # running sums of the large-scale forcing (docs/cycling.md C4): total_water(t) = total_water(0)
+        # + water_relaxation_total - rain_total
+        "rain_total": state["rain_total"],
+        "water_relaxation_total": state["water_relaxation_total"],
+        "heat_relaxation_total": state["heat_relaxation_total"],
         "max_cloud": jnp.max(w),
         "cloud_cells": jnp.sum(cloudy.astype(w.dtype)),
         "cloud_cover": jnp.mean(column_cloudy.astype(w.dtype)),
@@ -496,7 +503,8 @@ def _courant(vel, p):
     return courant_sum(vel, p, p.dt)
 
 
-STATS_COLUMNS = ("step", "time", "total_water", "total_vapor", "total_cloud", "heat", "mean_temperature",
+STATS_COLUMNS = ("step", "time", "total_water", "total_vapor", "total_cloud", "rain_total", "water_relaxation_total",
+                 "heat_relaxation_total", "heat", "mean_temperature",
                  "mean_theta_perturbation", "max_cloud", "cloud_cells", "cloud_fraction_volume", "cloud_cover",
                  "cloud_base", "cloud_top", "max_speed", "max_w_up", "cfl", "substeps", "divergence_rel", "cells",
                  "nx", "ny", "nz", "dt", "dtype", "device", "backend",

@@ -165,6 +165,17 @@ class Atmosphere:
                                         "horizontal centre, S times (1 - (r/R)^2)^2 for r < R (one isolated cloud)")
     noise_offset: list = _spec([0.0, 0.0], -1e6, 1e6, "", "shift of the noise pattern (noise units); seeds vary it",
                                length=2)
+    # Large-scale forcing of the cycling example (docs/cycling.md, eq. C1-C3); every term is off at 0.
+    diurnal_period: float = _spec(0.0, 0.0, 1e7, "s",
+                                  "P of eq. C1: the ground heating is multiplied by max(0, sin(2 pi t / P)) "
+                                  "(time of day; 0: constant heating)")
+    relaxation_time: float = _spec(0.0, 0.0, 1e9, "s",
+                                   "tau of eq. C2: T and vapor relax toward the initial profiles T0(y), v0(y) "
+                                   "(large-scale forcing; 0: off)")
+    autoconversion_rate: float = _spec(0.0, 0.0, 1e3, "1/s",
+                                       "k_auto of eq. C3: cloud water above the threshold is removed as rain at "
+                                       "this rate (0: off)")
+    autoconversion_threshold: float = _spec(5e-4, 0.0, 1.0, "kg/kg", "q_c0 of eq. C3: cloud water kept by a parcel")
 
 
 @dataclass

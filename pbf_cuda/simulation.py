@@ -28,6 +28,9 @@ from .scene import Scene, load_scene, scene_from_dict
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
 
 CHECKPOINT_VERSION = 1
+# The running sums of stats() a checkpoint carries, in the solver's order (StepBudget::totals).
+BUDGET_TOTALS = ("heat_source", "heat_latent", "heat_adiabatic", "heat_smoothing", "heat_relaxation",
+                 "water_relaxation", "water_rain")
 
 
 def _core():
@@ -122,6 +125,13 @@ def build_params(scene: Scene, capacity: int):
         p.noise_amplitude = a.noise_amplitude
         p.heating_patch_radius = a.heating_patch_radius
         p.noise_offset = list(a.noise_offset)
+        # Large-scale forcing (docs/cycling.md, eq. C1-C3)
+        p.diurnal_period = a.diurnal_period
+        p.relaxation_time = a.relaxation_time
+        p.autoconversion_rate = a.autoconversion_rate
+        p.autoconversion_threshold = a.autoconversion_threshold
+        p.initial_vapor_ratio = a.initial_vapor_ratio
+        p.vapor_relative = a.vapor_profile == "relative"
         sm = scene.smoothing
         p.kappa = sm.kappa if scene.smoothing_active else 0.0
         p.smoothing_beta = p.kappa * core.reference_smoothing_beta(h0, d, m0, rho0, sm.epsilon)
@@ -384,8 +394,7 @@ class Simulation:
         stats = s.stats()
         meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
                 "time": self.time, "next_id": s.next_id(), "backend": self.backend,
-                "budget_totals": [stats.get(f"heat_{k}_total", 0.0)
-                                  for k in ("source", "latent", "adiabatic", "smoothing")]}
+                "budget_totals": [stats.get(f"{k}_total", 0.0) for k in BUDGET_TOTALS]}
         return atomic_savez(path, meta, **arrays)
 
     @classmethod

@@ -22,7 +22,7 @@ python3 -m pip install -q --no-build-isolation --no-deps -e . > "$OUT/build.log"
 python3 -c "import pbf_cuda; print('backends', pbf_cuda.available_backends())"
 stage "gpu tests"
 timeout 420 python3 -m pytest -q -m gpu -p no:cacheprovider tests/test_solver_core.py tests/test_cloud_physics.py \
-  tests/test_adaptive.py tests/test_atmosphere_energy.py 2>&1 | tee "$OUT/gpu_tests.log" | tail -15
+  tests/test_adaptive.py tests/test_atmosphere_energy.py tests/test_cycling.py 2>&1 | tee "$OUT/gpu_tests.log" | tail -15
 R=${REPORT_DIR:-reports/gpu}
 for step in "$@"; do
   stage "$step"
@@ -37,12 +37,15 @@ for step in "$@"; do
       timeout 300 python3 -m bench.cli adaptive-cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
       python3 -c "import pandas as pd, sys; pd.concat([pd.read_csv('/tmp/ac45.csv'), pd.read_csv('/tmp/ac40.csv')]).to_csv(sys.argv[1], index=False)" \
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
-    constant_gravity) timeout 400 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
+    constant_gravity) timeout 600 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
     adaptive_pareto|adaptive_pareto_cumulus)  # paper scale, 3 seeds; runs cached in $CLOUDPBF_RUNS across calls
       scene=growing; [ "$step" = adaptive_pareto_cumulus ] && scene=cumulus
       timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
         --backend cuda --scheduler inline --out "$R" -q ;;
+    cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
+      timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
+        --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista

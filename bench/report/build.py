@@ -483,6 +483,40 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.provenance = _provenance(ts, prof, env=env)
 
 
+CYCLING_PANELS = (("cloud_cover", "cloud cover (fraction of columns)"), ("lwp_mean", "mean liquid water path (kg/m2)"),
+                  ("cloud_top", "cloud top (m)"), ("rain_total", "rain removed since t = 0 (kg, eq. C3)"),
+                  ("water_relaxation_total", "vapor added by the relaxation since t = 0 (kg, eq. C2)"))
+
+
+def _cycling(inp: Inputs, sec: Section) -> None:
+    """Paper example 2 (docs/cycling.md), shown in the compare section when `cloudpbf cycling` ran."""
+    ts, _ = inp.csv("cycling_timeseries")
+    cycles, path = inp.csv("cycling_cycles")
+    if ts is None and cycles is None:
+        return
+    sec.add("text", "Example 2: clouds that disappear and reappear (cloudpbf cycling, docs/cycling.md): "
+                    "time-of-day ground heating, relaxation toward the initial profiles and rain.")
+    if ts is not None:
+        sec.add("image", plots.timeseries_plot(ts, CYCLING_PANELS), caption=(
+            "The cycling scene: cover, liquid water path, cloud top and the water budget's sinks and sources "
+            "(docs/cycling.md C4: total water = initial + relaxation - rain) against time for the three solvers; "
+            "line = mean over seeds, band = min..max over seeds."))
+    if cycles is not None:
+        rows = []
+        for (solver, mode), g in cycles.groupby(["solver", "mode"], sort=True):
+            rows.append({"solver": solver, "mode": mode, "seeds": g["seed"].nunique(),
+                         "full cycles": _mean_sd(g["cycles"]), "fewest cycles": int(g["cycles"].min()),
+                         "peak cover": _mean_sd(g["peak_cover"]), "min cover": _mean_sd(g["min_cover"])})
+        sec.add("table", _table(pd.DataFrame(rows)), caption=(
+            f"Full cycles per run from {path.name}: after the cover first reaches half its peak, a fall below "
+            "20% of the peak followed by a climb back above 50%; mean ± standard deviation over seeds."))
+
+
+def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
+    _compare(inp, sec, env)
+    _cycling(inp, sec)
+
+
 SWEEP_HIDDEN = ("device", "commit", "run_dir")
 
 
@@ -678,7 +712,7 @@ def _study_failure(status: dict, section_id: str) -> str:
 
 BUILDERS = {
     "environment": _environment, "table1": _table1, "phases": _phases, "scaling": _scaling,
-    "adaptive": _adaptive, "compare": _compare, "sweep": _sweep, "adaptive_pareto": _adaptive_pareto,
+    "adaptive": _adaptive, "compare": _compare_and_cycling, "sweep": _sweep, "adaptive_pareto": _adaptive_pareto,
     "stress": _stress,
     "renders": _renders, "figure1": _figure1, "figure3": _figure3,
 }

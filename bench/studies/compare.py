@@ -32,7 +32,8 @@ from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 MODES = ("non-adaptive", "adaptive", "grid")
 # The energy and heat budget of both solvers (Simulation.stats(), GridSimulation.stats(); README "Budgets").
 BUDGET_COLUMNS = ("mass_centre_height", "kinetic_energy", "mean_temperature", "heat_source_total",
-                  "heat_latent_total", "heat_adiabatic_total", "heat_smoothing_total", "heat_numerical_total")
+                  "heat_latent_total", "heat_adiabatic_total", "heat_smoothing_total", "heat_numerical_total",
+                  "heat_relaxation_total", "water_relaxation_total", "water_rain_total")
 SOLVER_OF_MODE = {"non-adaptive": "particles", "adaptive": "particles", "grid": "grid"}
 SOLVER_COLUMNS = ("n_particles", "level_0", "level_1", "level_2", "level_3", "density_error_mean",
                   "density_error_max", "density_excess_mean", "density_deficit_mean", "max_speed", "cfl", "substeps",

@@ -176,6 +176,12 @@ public:
             d["heat_latent_total"] = b.totals[1];
             d["heat_adiabatic_total"] = b.totals[2];
             d["heat_smoothing_total"] = b.totals[3];
+            d["heat_relaxation"] = b.heat_relaxation;
+            d["water_relaxation"] = b.water_relaxation;
+            d["water_rain"] = b.water_rain;
+            d["heat_relaxation_total"] = b.totals[4];
+            d["water_relaxation_total"] = b.totals[5];
+            d["water_rain_total"] = b.totals[6];
         }
         return d;
     }
@@ -239,6 +245,8 @@ NB_MODULE(_core, m) {
     PBF_RW(velocity_projection); PBF_RW(divergence_iterations); PBF_RW(divergence_tolerance); PBF_RW(viscosity); PBF_RW(smoothing_beta);
     PBF_RW(max_density_error); PBF_RW(thermodynamics); PBF_RW(ground_temperature); PBF_RW(lapse_rate);
     PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
+    PBF_RW(diurnal_period); PBF_RW(relaxation_time); PBF_RW(autoconversion_rate);
+    PBF_RW(autoconversion_threshold); PBF_RW(initial_vapor_ratio); PBF_RW(vapor_relative);
     PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude); PBF_RW(heating_patch_radius);
     PBF_RW(kappa); PBF_RW(smoothing_epsilon); PBF_RW(adaptive); PBF_RW(max_level); PBF_RW(k_p); PBF_RW(k_c);
     PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(lookahead_height); PBF_RW(capacity);
@@ -265,7 +273,11 @@ NB_MODULE(_core, m) {
         .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
         .def("set_projection_impulse", [](PySolver& s, FloatArray mu) { s.impl_->set_projection_impulse(mu.size(), mu.data()); })
         .def("set_budget_totals", [](PySolver& s, std::vector<double> t) {
-            if (t.size() != 4) throw std::invalid_argument("set_budget_totals: expected 4 values");
+            // 4 values: a checkpoint written before the forcing terms existed (they start at 0).
+            if (t.size() != 4 && t.size() != std::size_t(pbf::StepBudget::kTotals))
+                throw std::invalid_argument("set_budget_totals: expected 4 or " +
+                                            std::to_string(pbf::StepBudget::kTotals) + " values");
+            t.resize(pbf::StepBudget::kTotals, 0.0);
             s.impl_->set_budget_totals(t.data());
         })
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })

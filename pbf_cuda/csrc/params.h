@@ -54,6 +54,13 @@ struct Params {
     float noise_amplitude = 0.0f;
     float heating_patch_radius = 0.0f; // m; 0: the whole ground is heated
     float noise_offset[2] = {0, 0};
+    // Large-scale forcing of the cycling example (docs/cycling.md, eq. C1-C3); 0 => off
+    float diurnal_period = 0.0f;       // P of C1, s: heating times max(0, sin(2 pi t / P))
+    float relaxation_time = 0.0f;      // tau of C2, s: T and v relax toward T0(y), v0(y)
+    float autoconversion_rate = 0.0f;  // k_auto of C3, 1/s
+    float autoconversion_threshold = 0.0f;  // q_c0 of C3, kg/kg
+    float initial_vapor_ratio = 0.0f;  // k_v of section 5 (the relaxation target v0(y))
+    bool vapor_relative = true;        // v0 from T0(y) (true) or from the ground temperature
     // Temperature smoothing (section 4.1); kappa = 0 => no pass
     float kappa = 0.0f;
     float smoothing_beta = 0.0f;       // kappa grad C_ii / |grad C_i|^2 of a full lattice (eq. 17), m^2

@@ -45,8 +45,15 @@ struct StepBudget {
     double heat_adiabatic = 0.0;       // K, adiabatic term (eq. 7)
     double heat_smoothing = 0.0;       // K, temperature smoothing (eq. 12-17): 0 up to rounding
     double total_water = 0.0;          // kg (sum m (v + w))
-    // The four heat terms summed over every step since step 0 (checkpoints carry them), K.
-    double totals[4] = {0, 0, 0, 0};   // source, latent, adiabatic, smoothing
+    double heat_relaxation = 0.0;      // K, relaxation toward T0(y) (docs/cycling.md C2)
+    double water_relaxation = 0.0;     // kg, vapor added by the relaxation toward v0(y) (C2; < 0: removed)
+    double water_rain = 0.0;           // kg, cloud water removed as rain by autoconversion (C3)
+    // The terms summed over every step since step 0 (checkpoints carry them): K for the five heat
+    // terms, kg for the two water terms.  Water closes: total_water(t) = total_water(0)
+    //   + totals[5] - totals[6] (docs/cycling.md C4).
+    static constexpr int kTotals = 7;
+    double totals[kTotals] = {0, 0, 0, 0, 0, 0, 0};  // source, latent, adiabatic, smoothing, relaxation,
+                                                     // water_relaxation, rain
 };
 
 struct StepStats {

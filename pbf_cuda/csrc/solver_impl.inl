@@ -540,6 +540,13 @@ public:
         atm_.patch_centre[0] = 0.5f * p_.domain[0];
         atm_.patch_centre[1] = 0.5f * p_.domain[2];
         atm_.dt = p_.dt;
+        atm_.diurnal = 1.0f;
+        atm_.relax_decay = p_.relaxation_time > 0.0f ? float(std::exp(-double(p_.dt) / p_.relaxation_time)) : 1.0f;
+        atm_.auto_decay = p_.autoconversion_rate > 0.0f ? float(std::exp(-double(p_.autoconversion_rate) * p_.dt))
+                                                        : 1.0f;
+        atm_.auto_threshold = p_.autoconversion_threshold;
+        atm_.vapor_ratio = p_.initial_vapor_ratio;
+        atm_.vapor_relative = p_.vapor_relative;
 
         ap_.k_p = p_.k_p;
         ap_.k_c = p_.k_c;
@@ -632,7 +639,7 @@ public:
     }
 
     void set_budget_totals(const double* totals) override {
-        for (int k = 0; k < 4; ++k) last_stats_.budget.totals[k] = totals[k];
+        for (int k = 0; k < StepBudget::kTotals; ++k) last_stats_.budget.totals[k] = totals[k];
     }
 
     void set_clock(long long step, double time, uint32_t next_id) override {
@@ -919,6 +926,7 @@ private:
         const float dt = p_.dt;
         const bool vproj = p_.velocity_projection;
         const Vec3 gravity{p_.gravity[0], p_.gravity[1], p_.gravity[2]};
+        atm_.diurnal = diurnal_factor(time_ + 0.5 * double(dt));   // C1 at the step's mid-time
         BudgetSums start = reduce_budget(pos_, false, false);
         // ---- PBF (Table 1 column "PBF") ----
         clock_.begin(kPhasePBF);
@@ -966,10 +974,13 @@ private:
         }
 
         // ---- cloud dynamics (eq. 5-11) ----
+        ForcingSums forcing{0.0, 0.0, 0.0};
         if (p_.thermodynamics) {
             clock_.begin(kPhaseCloudDynamics);
-            parallel_for(n_, CloudDynamics{atm_, raw(pos_), raw(pred_), raw(vel_), raw(temperature_), raw(vapor_),
-                                           raw(cloud_)});
+            forcing = thrust::transform_reduce(
+                thrust::device, thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n_)),
+                CloudDynamics{atm_, raw(pos_), raw(pred_), raw(vel_), raw(temperature_), raw(vapor_), raw(cloud_)},
+                forcing, ForcingAdd{});
             clock_.end(kPhaseCloudDynamics);
         }
 
@@ -998,17 +1009,31 @@ private:
         b.heat_source = end.heat / M;
         b.heat_smoothing = smoothing_heat / M;
         b.heat_adiabatic = -double(p_.dry_lapse_rate) * (end.my - start.my) / M;
-        b.heat_latent = double(p_.latent_heat) * (end.mw - start.mw) / M;
+        // Cloud water removed as rain (C3) released no heat: it is no part of the latent term.
+        b.heat_latent = double(p_.latent_heat) * (end.mw - start.mw + forcing.rain) / M;
+        b.heat_relaxation = forcing.heat_relax / M;
+        b.water_relaxation = forcing.water_relax;
+        b.water_rain = forcing.rain;
         b.total_water = end.mq;
         if (!p_.thermodynamics) b.heat_adiabatic = 0.0;
         b.totals[0] += b.heat_source;
         b.totals[1] += b.heat_latent;
         b.totals[2] += b.heat_adiabatic;
         b.totals[3] += b.heat_smoothing;
+        b.totals[4] += b.heat_relaxation;
+        b.totals[5] += b.water_relaxation;
+        b.totals[6] += b.water_rain;
 
         step_ += 1;
         time_ += dt;
         if (p_.adaptive) adapt();
+    }
+
+    // Time-of-day factor f(t) = max(0, sin(2 pi t / P)) of the surface heating (docs/cycling.md C1).
+    float diurnal_factor(double t) const {
+        if (!(p_.diurnal_period > 0.0f)) return 1.0f;
+        double s = std::sin(2.0 * 3.14159265358979323846 * t / double(p_.diurnal_period));
+        return s > 0.0 ? float(s) : 0.0f;
     }
 
     // ---- splitting and merging (section 5.2) ----

@@ -5,6 +5,13 @@
 //                         gamma = min(A exp(B / (T + C)), v + w)      (eq. 10)
 //   latent heat           dT = Q dw                                    (eq. 11)
 //   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6)
+// Large-scale forcing of the cycling example (docs/cycling.md, eq. C1-C4; all off by default):
+//   time of day           S_e(t) = S_e f(t), f(t) = max(0, sin(2 pi t / P))            (C1)
+//   relaxation            dT/dt = -(T - T0(y)) / tau,  dv/dt = -(v - v0(y)) / tau      (C2)
+//                         integrated exactly: X = X0 + (X - X0) exp(-dt / tau)
+//   autoconversion        dw/dt = -k_auto max(0, w - q_c0), w removed as rain          (C3)
+//                         integrated exactly: w = q_c0 + (w - q_c0) exp(-k_auto dt) above q_c0
+// Order per step: heating, adiabatic, relaxation, phase transition, autoconversion, buoyancy.
 // The paper lists buoyancy before the adiabatic term. Here the buoyancy is evaluated last, with the
 // temperature and cloud water that belong to the particle's new height: with the paper's order the
 // force sees a temperature that is Gamma_d dy too warm for a rising particle (too cold for a sinking
@@ -27,6 +34,14 @@ struct AtmosphereParams {
     float heating_rate, heating_depth, noise_frequency, noise_amplitude, noise_offset[2];
     float patch_radius, patch_centre[2];   // heated patch (m); radius 0: the whole ground
     float dt;
+    // Large-scale forcing (docs/cycling.md): diurnal factor of this step (C1), relaxation (C2),
+    // autoconversion (C3), initial vapor profile v0(y) = vapor_ratio A exp(B / (T_ref + C)).
+    float diurnal;            // f(t) at the step's mid-time; 1 without a diurnal cycle
+    float relax_decay;        // exp(-dt / tau); 1 without relaxation
+    float auto_decay;         // exp(-k_auto dt); 1 without autoconversion
+    float auto_threshold;     // q_c0, kg/kg
+    float vapor_ratio;        // k_v of section 5
+    bool vapor_relative;      // v0 follows T0(y) (true) or the ground temperature (false)
 
     PBF_HD float environment_temperature(float y) const { return ground_temperature - lapse_rate * y; }
     PBF_HD float saturation(float T) const { return sat_a * expf(sat_b / (T + sat_c)); }
@@ -45,7 +60,24 @@ struct AtmosphereParams {
     // Temperature change of one step from the ground heating at position x (eq. 5), K.
     PBF_HD float heating(Vec3 x) const {
         if (!(heating_rate > 0.0f) || !(x.y < heating_depth)) return 0.0f;
-        return heating_rate * heating_pattern(x.x, x.z) * dt;
+        return heating_rate * diurnal * heating_pattern(x.x, x.z) * dt;   // eq. 5 with C1
+    }
+    // Initial (and relaxation target) vapor v0(y), kg/kg (section 5).
+    PBF_HD float initial_vapor(float y) const {
+        return vapor_ratio * saturation(vapor_relative ? environment_temperature(y) : ground_temperature);
+    }
+};
+
+// What the large-scale forcing of one particle did in one step (mass-weighted sums in double).
+struct ForcingSums {
+    double heat_relax;   // sum m dT from the relaxation (C2), kg K
+    double water_relax;  // sum m dv from the relaxation (C2), kg (vapor added: > 0)
+    double rain;         // sum m dw removed by autoconversion (C3), kg (>= 0)
+};
+
+struct ForcingAdd {
+    PBF_HD ForcingSums operator()(const ForcingSums& a, const ForcingSums& b) const {
+        return ForcingSums{a.heat_relax + b.heat_relax, a.water_relax + b.water_relax, a.rain + b.rain};
     }
 };
 
@@ -71,6 +103,8 @@ PBF_INLINE void phase_transition(const AtmosphereParams& a, float& T, float& v, 
     v = q - w_new;
 }
 
+// Runs the cloud dynamics of particle i and returns what its forcing terms changed (thrust
+// transform_reduce visits each particle exactly once, so the update and the budget are one pass).
 struct CloudDynamics {
     AtmosphereParams a;
     const Float4* pos_old;   // positions at the start of the step
@@ -79,19 +113,36 @@ struct CloudDynamics {
     float* temperature;
     float* vapor;
     float* cloud;
-    PBF_HD void operator()(uint32_t i) const {
+    PBF_HD ForcingSums operator()(uint32_t i) const {
         Vec3 x = xyz(pos_new[i]);
+        double m = pos_new[i].w;
         float T = temperature[i], v = vapor[i], w = cloud[i];
-        T += a.heating(x);                                                                  // eq. 5
+        ForcingSums f{0.0, 0.0, 0.0};
+        T += a.heating(x);                                                                  // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
-        phase_transition(a, T, v, w);                                                      // eq. 9-11
         float T0 = a.environment_temperature(x.y);
+        if (a.relax_decay < 1.0f) {                                                        // C2
+            float T_new = T0 + (T - T0) * a.relax_decay;
+            float v0 = a.initial_vapor(x.y);
+            float v_new = fmaxf(v0 + (v - v0) * a.relax_decay, 0.0f);
+            f.heat_relax = m * (double(T_new) - double(T));
+            f.water_relax = m * (double(v_new) - double(v));
+            T = T_new;
+            v = v_new;
+        }
+        phase_transition(a, T, v, w);                                                      // eq. 9-11
+        if (a.auto_decay < 1.0f && w > a.auto_threshold) {                                 // C3
+            float w_new = a.auto_threshold + (w - a.auto_threshold) * a.auto_decay;
+            f.rain = m * (double(w) - double(w_new));
+            w = w_new;
+        }
         float accel = a.buoyancy * (T - T0) / T0 - a.cloud_gravity * w;                    // eq. 6
         Float4 u = vel[i];
         vel[i] = Float4{u.x, u.y + a.dt * accel, u.z, u.w};
         temperature[i] = T;
         vapor[i] = v;
         cloud[i] = w;
+        return f;
     }
 };
 

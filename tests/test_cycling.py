@@ -1,0 +1,238 @@
+"""Paper example 2, clouds that disappear and reappear: the large-scale forcing of docs/cycling.md
+(C1 time-of-day heating, C2 relaxation, C3 autoconversion, C4 water budget) in the particle solver and
+the grid baseline, and the cycle counting of bench/studies/cycling.py."""
+import math
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from bench.statistics import grid_for_scene, particle_diagnostics
+from bench.studies.cycling import CPU_OVERRIDES, count_cycles
+from grid_baseline import GridSimulation
+from grid_baseline.model import diurnal_integral, initial_state, make_aux, params_from_scene, physics
+from pbf_cuda import Simulation
+from pbf_cuda.scene import SceneError, load_scene
+from solver_helpers import BACKENDS
+
+FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+GRID = settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+jax.config.update("jax_enable_x64", True)   # the grid checks run in float64 (as GridSimulation on a CPU)
+
+
+def dry_box(**overrides):
+    """A small closed box of dry-ish air at rest, neutral (lapse = Gamma_d, so the anomaly T - T0(y) does
+    not change when a particle moves), no buoyancy: the particles' motion cannot feed back on T."""
+    base = {"domain.size": [600.0, 800.0, 600.0], "particles.spacing": 100.0, "particles.max_speed": 0.0,
+            "atmosphere.lapse_rate": 0.0098, "atmosphere.buoyancy": 0.0, "atmosphere.initial_vapor_ratio": 0.3,
+            "smoothing.kappa": 0.0}
+    base.update(overrides)
+    return load_scene("growing").replace(**base)
+
+
+# ---- C1: time of day ---------------------------------------------------------------------------
+@FAST
+@given(period=st.floats(10.0, 1e5), cycles=st.floats(0.0, 6.0))
+def test_diurnal_integral_is_the_closed_form(period, cycles):
+    t = cycles * period
+    s = np.linspace(0.0, t, 20001)
+    numeric = np.trapezoid(np.maximum(0.0, np.sin(2 * np.pi * s / period)), s) if t > 0 else 0.0
+    assert diurnal_integral(t, period) == pytest.approx(numeric, rel=1e-6, abs=1e-6 * period)
+    # every full period adds P / pi, and nothing comes from the night half
+    assert diurnal_integral(math.floor(cycles) * period, period) == pytest.approx(math.floor(cycles) * period / math.pi)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_particle_heating_follows_the_time_of_day(backend):
+    dt, period, steps = 2.0, 80.0, 60                       # 1.5 periods, 40 steps per period
+    runs = {}
+    for p in (0.0, period):
+        sim = Simulation(dry_box(**{"time.dt": dt, "atmosphere.diurnal_period": p}), backend=backend, seed=0)
+        per_step = []
+        for _ in range(steps):
+            sim.step(1)
+            per_step.append(sim.stats()["heat_source"])
+        runs[p] = (np.array(per_step), sim.stats()["heat_source_total"])
+    const, diurnal = runs[0.0][0], runs[period][0]
+    mid = (np.arange(steps) + 0.5) * dt
+    # eq. C1 step by step: the source is the constant one times f at the step's mid-time ...
+    assert np.allclose(diurnal, const * np.maximum(0.0, np.sin(2 * np.pi * mid / period)), rtol=1e-5, atol=1e-12)
+    # ... and its integral is the closed form to the midpoint rule's O((dt/P)^2)
+    closed = diurnal_integral(steps * dt, period) / (steps * dt)
+    assert runs[period][1] / runs[0.0][1] == pytest.approx(closed, rel=(2 * np.pi * dt / period) ** 2)
+
+
+@GRID
+@given(t=st.floats(0.0, 1e4), period=st.floats(50.0, 5e3), dt=st.floats(0.5, 20.0))
+def test_grid_heating_follows_the_time_of_day(t, period, dt):
+    scene = load_scene("growing").replace(**{"atmosphere.diurnal_period": period, "time.dt": dt,
+                                             "atmosphere.initial_vapor_ratio": 0.1})
+    p = params_from_scene(scene, (4, 4, 4))
+    state = initial_state(p, np.float64)
+    state["time"] = np.float64(t)
+    aux = make_aux(p, np.float64)
+    out = physics(state, aux, p)
+    f = max(0.0, math.sin(2 * math.pi * (t + 0.5 * dt) / period))
+    assert np.allclose(np.asarray(out["theta"]), dt * f * np.asarray(aux["heat"]), rtol=1e-9, atol=1e-12)
+    assert float(out["time"]) == pytest.approx(t + dt)
+
+
+# ---- C2: relaxation ----------------------------------------------------------------------------
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_particle_relaxation_decays_an_anomaly_at_one_over_tau(backend):
+    tau, dt, steps = 40.0, 2.0, 30
+    scene = dry_box(**{"time.dt": dt, "atmosphere.relaxation_time": tau, "atmosphere.heating_rate": 0.0})
+    base = Simulation(scene, backend="cpu", seed=0).state()
+    y = base["position"][:, 1].astype(np.float64)
+    T0 = scene.environment_temperature(y)
+    v0 = 0.3 * scene.saturation(T0)
+    fluid = dict(base, temperature=(T0 + 3.0).astype(np.float32), vapor=(v0 * 1.5).astype(np.float32))
+    sim = Simulation.from_arrays(scene, fluid, backend=backend)
+    start = sim.stats()
+    sim.step(steps)
+    st_ = sim.state()
+    yn = st_["position"][:, 1].astype(np.float64)
+    anomaly = st_["temperature"] - scene.environment_temperature(yn)
+    decay = math.exp(-steps * dt / tau)
+    assert np.allclose(anomaly, 3.0 * decay, atol=2e-3)
+    # the vapor excess decays alike (0.45 of saturation: no cloud forms); the budget has both terms
+    excess = st_["vapor"] / (0.3 * scene.saturation(scene.environment_temperature(yn))) - 1.0
+    assert np.allclose(excess, 0.5 * decay, atol=2e-3)
+    s = sim.stats()
+    assert s["heat_relaxation_total"] == pytest.approx(s["mean_temperature"] - start["mean_temperature"], rel=1e-3)
+    assert s["water_relaxation_total"] == pytest.approx(s["total_water"] - start["total_water"], rel=1e-5)
+
+
+@GRID
+@given(tau=st.floats(5.0, 1e4), dt=st.floats(0.1, 50.0), steps=st.integers(1, 4))
+def test_grid_relaxation_decays_an_anomaly_at_one_over_tau(tau, dt, steps):
+    scene = load_scene("growing").replace(**{"atmosphere.relaxation_time": tau, "time.dt": dt,
+                                             "atmosphere.heating_rate": 0.0, "atmosphere.initial_vapor_ratio": 0.3})
+    p = params_from_scene(scene, (4, 4, 4))
+    aux = make_aux(p, np.float64)
+    state = initial_state(p, np.float64)
+    state["theta"] = state["theta"] + 2.0
+    state["vapor"] = 1.5 * state["vapor"]
+    for _ in range(steps):
+        state = physics(state, aux, p)
+    decay = math.exp(-steps * dt / tau)
+    assert np.allclose(np.asarray(state["theta"]), 2.0 * decay, rtol=1e-9)
+    assert np.allclose(np.asarray(state["vapor"]) / np.asarray(aux["v0"]), 1.0 + 0.5 * decay, rtol=1e-9)
+
+
+# ---- C3 + C4: rain and the water budget ---------------------------------------------------------
+def rainy_scene(**overrides):
+    """Supersaturated from the start (cloud at once), relaxation and autoconversion both on."""
+    base = {"domain.size": [800.0, 1600.0, 800.0], "particles.spacing": 100.0,
+            "atmosphere.initial_vapor_ratio": 1.05, "atmosphere.relaxation_time": 100.0,
+            "atmosphere.autoconversion_rate": 0.02, "atmosphere.autoconversion_threshold": 2e-4,
+            "atmosphere.diurnal_period": 200.0}
+    base.update(overrides)
+    return load_scene("growing").replace(**base)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_particle_water_budget_closes_with_rain_and_relaxation(backend, adaptive):
+    over = {"adaptive.enabled": True, "particles.spacing": 200.0, "domain.size": [1200.0, 1600.0, 1200.0]} \
+        if adaptive else {}
+    sim = Simulation(rainy_scene(**over), backend=backend, seed=1)
+    w0 = sim.stats()["total_water"]
+    for _ in range(4):
+        sim.step(15)
+        s = sim.stats()
+        closure = s["total_water"] - w0 - s["water_relaxation_total"] + s["water_rain_total"]
+        assert abs(closure) < 1e-6 * w0                                           # eq. C4
+    assert s["water_rain_total"] > 1e-4 * w0 and abs(s["water_relaxation_total"]) > 1e-4 * w0
+    assert float(sim.state()["cloud"].max()) > 0.0
+
+
+def test_checkpoint_carries_the_forcing_totals(tmp_path):
+    sim = Simulation(rainy_scene(), backend="cpu", seed=1)
+    sim.step(10)
+    back = Simulation.load(sim.save(tmp_path / "c.npz"))
+    a, b = sim.stats(), back.stats()
+    for key in ("heat_relaxation_total", "water_relaxation_total", "water_rain_total"):
+        assert a[key] != 0.0 and b[key] == a[key]
+
+
+def test_scene_refuses_bad_forcing_values_by_name():
+    with pytest.raises(SceneError, match="atmosphere.relaxation_time"):
+        load_scene("cycling").replace(**{"atmosphere.relaxation_time": -1.0})
+    with pytest.raises(SceneError, match="atmosphere.autoconversion_rate"):
+        load_scene("cycling").replace(**{"atmosphere.autoconversion_rate": -0.1})
+
+
+# ---- cycle counting and the CPU cycle -----------------------------------------------------------
+@FAST
+@given(n=st.integers(0, 5), peak=st.floats(0.05, 1.0), low=st.floats(0.0, 0.19), high=st.floats(0.5, 1.0))
+def test_count_cycles_counts_built_cycles(n, peak, low, high):
+    series = [0.0, peak]
+    for _ in range(n):
+        series += [low * peak, 0.3 * peak, high * peak]
+    out = count_cycles(series)
+    assert out["cycles"] == n and out["peak_cover"] == pytest.approx(peak)
+    # a dip that stays above 20% of the peak is not a cycle, nor is the flicker of a cover below 5%
+    assert count_cycles([0.0, peak, 0.25 * peak, peak])["cycles"] == 0
+    assert count_cycles([0.0, 0.02, 0.0, 0.02, 0.0, 0.02])["cycles"] == 0
+
+
+def cover_series(kind, seconds=2400.0, every=5):
+    """Cloud cover of the CPU cycle every `every` steps; for the grid the water budget (C4) is checked
+    at every sample too (the grid's budget test: one compilation for both)."""
+    scene = load_scene("cycling").replace(**CPU_OVERRIDES)
+    shape, _ = grid_for_scene(scene)
+    steps = int(seconds / scene.time.dt)
+    out = []
+    if kind == "grid":
+        sim = GridSimulation(scene, seed=0, resolution=shape)
+        w0 = sim.stats()["total_water"]
+        for _ in range(steps // every):
+            sim.step(every)
+            s = sim.stats()
+            assert abs(s["total_water"] - w0 - s["water_relaxation_total"] + s["rain_total"]) < 1e-6 * w0  # C4
+            out.append(s["cloud_cover"])
+            if count_cycles(out)["cycles"]:
+                break                                      # one full cycle: the rest of the run adds nothing
+        assert s["rain_total"] > 1e-4 * w0 and abs(s["water_relaxation_total"]) > 1e-4 * w0
+    else:
+        sim = Simulation(scene, backend="cpu", seed=0)
+        for _ in range(steps // every):
+            sim.step(every)
+            out.append(particle_diagnostics(sim.state(), scene, resolution=shape)["cloud_cover"])
+            if count_cycles(out)["cycles"]:
+                break
+    return np.array(out)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["particles", "grid"])
+def test_clouds_disappear_and_reappear_at_cpu_scale(kind):
+    cover = cover_series(kind)
+    counted = count_cycles(cover)
+    assert counted["peak_cover"] > 0.1                     # clouds form in the first afternoon ...
+    assert counted["min_cover"] < 0.2 * counted["peak_cover"]   # ... vanish at night ...
+    assert counted["cycles"] >= 1                          # ... and come back the next day
+
+
+def test_report_shows_the_cycling_study(tmp_path):
+    from bench.report import build_report
+    data = tmp_path / "data"
+    data.mkdir()
+    t = np.arange(0.0, 2400.0, 40.0)
+    rows, cycles = [], []
+    for solver, mode in (("particles", "non-adaptive"), ("particles", "adaptive"), ("grid", "grid")):
+        for seed in range(3):
+            cover = np.maximum(0.0, np.sin(2 * np.pi * t / 1200.0)) * (0.4 + 0.05 * seed)
+            rows += [{"solver": solver, "mode": mode, "seed": seed, "time_s": ti, "step": int(ti / 8),
+                      "cloud_cover": c, "lwp_mean": 0.1 * c, "cloud_top": 1000.0 * (c > 0)} for ti, c in zip(t, cover)]
+            cycles.append({"solver": solver, "mode": mode, "seed": seed, **count_cycles(cover), "device": "cpu",
+                           "commit": "abc"})
+    import pandas as pd
+    pd.DataFrame(rows).to_csv(data / "cycling_timeseries.csv", index=False)
+    pd.DataFrame(cycles).to_csv(data / "cycling_cycles.csv", index=False)
+    section = build_report(tmp_path).read_text().split('<section id="compare"', 1)[1].split("<section", 1)[0]
+    assert "clouds that disappear and reappear" in section and "cycling_cycles.csv" in section
+    assert "data:image/png" in section and "could not build" not in section
