@@ -19,15 +19,18 @@ if [ "${#need_pkgs[@]}" -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
     || echo "setup: could not install rendering libraries; renders will be reported as unavailable"
 fi
 
-# CUDA architectures of this (editable, from-source) build: a machine with a GPU builds for that GPU
-# (native); one without (CI) compiles the CUDA backend for one architecture only, to check that it
-# builds without six times the compile time. Set CUDAARCHS to choose; `pip install .` or a wheel build
-# without it carries the portable default (every architecture since Volta, see CMakeLists.txt).
+# CUDA backend of this (editable, from-source) build: on a machine with a GPU it is built for that GPU
+# (native). A machine without one (CI, laptops) builds the CPU backend only, unless CLOUDPBF_CUDA=ON
+# asks for the CUDA backend too (then for one architecture, sm_90, to check that it compiles). Set
+# CUDAARCHS to choose; `pip install .` or a wheel build without it carries the portable default (every
+# architecture since Volta, see CMakeLists.txt).
 if [ -z "${CUDAARCHS:-}" ] && command -v nvcc >/dev/null 2>&1; then
   if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L 2>/dev/null | grep -q "^GPU"; then
     export CUDAARCHS=native
-  else
+  elif [ "${CLOUDPBF_CUDA:-AUTO}" = "ON" ]; then
     export CUDAARCHS=90
+  else
+    export CLOUDPBF_CUDA=${CLOUDPBF_CUDA:-OFF}
   fi
 fi
 

@@ -42,6 +42,10 @@ TABLE1_COLUMNS = ("example", "figure", "mode", "max_particles", *(f"{p}_ms" for 
 PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
 
 
+CPU_TIMING_STEPS = 500
+"""Below the GPU scale a row runs at most this many steps (times the scale's step fraction)."""
+
+
 def paper_rows() -> dict[tuple[str, str], dict]:
     """(example, mode) -> the paper's row, with its total_ms (sum of the phases it lists)."""
     paper = pd.read_csv(PAPER_TABLE1)
@@ -54,6 +58,9 @@ def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
     specs = []
     for _, _, _, name in ROWS:
         scene = scale_scene(load_scene(name), ctx.scale.particles, ctx.scale.step_fraction)
+        cap = max(10, int(round(CPU_TIMING_STEPS * ctx.scale.step_fraction)))
+        if ctx.scale.particles is not None and scene.time.steps > cap:   # below the GPU scale: per-step timings
+            scene = scene.replace(**{"time.steps": cap})                 # need no 4200 s cycling run
         steps = scene.time.steps
         specs.append(runs.RunSpec("particles", scene, backend=ctx.backend, diagnostics=False, keep_snapshots=1,
                                   warmup_steps=min(5, steps // 10)))
