@@ -228,8 +228,9 @@ def test_nested_neighbour_search_finds_every_pair_of_mixed_levels(backend):
     assert len(interior) > 100
     worst = 0.0
     for i in interior:
-        nb = np.asarray(tree.query_ball_point(x[i], h0)) % len(x)
-        r2 = np.sum((images[tree.query_ball_point(x[i], h0)] - x[i]) ** 2, axis=1)
+        hits = np.asarray(tree.query_ball_point(x[i], h0))
+        nb = hits % len(x)
+        r2 = np.sum((images[hits] - x[i]) ** 2, axis=1)
         w = np.where(hr[nb] == hr[i], poly6(r2, hr[i]), 0.5 * (poly6(r2, hr[i]) + poly6(r2, hr[nb])))
         expected = np.sum(m[nb] * w)
         worst = max(worst, abs(rho_by_id[st["id"][i]] / expected - 1.0))

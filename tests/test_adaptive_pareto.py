@@ -51,6 +51,8 @@ def test_speedup_at_equal_error_is_the_uniform_front_time_over_the_variants(spee
     e = float(np.exp(np.log(0.05) + where * (np.log(0.4) - np.log(0.05))))
     t_front = ap.time_at_error(front, e)
     assert t_front == pytest.approx(2.0 / e**2, rel=1e-9)
+    variant = {"error": e, "ms_per_step": t_front / speedup}
+    assert ap.time_at_error(front, variant["error"]) / variant["ms_per_step"] == pytest.approx(speedup, rel=1e-9)
     assert ap.time_at_error(front, 0.01) != ap.time_at_error(front, 0.01)   # NaN beyond the front
 
 

@@ -38,8 +38,8 @@ no speed-up (null) and the verdict says so.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
-
 from typing import Annotated
 
 import click
@@ -50,6 +50,7 @@ import typer
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.pareto import pareto_front
 from bench.studies.context import StudyContext
 from bench.studies.registry import Study, register
 from bench.studies.scales import scale_steps
@@ -138,10 +139,10 @@ def mean_signature(sigs: list[dict]) -> dict | None:
     t = sigs[0]["time"]
     out = {"time": t}
     for key, _ in SERIES:
-        stack = np.array([np.interp(t, s["time"], s[key]) if np.isfinite(s[key]).all() else
-                          _interp_nan(t, s["time"], s[key]) for s in sigs])
-        with np.errstate(all="ignore"):
-            out[key] = np.nanmean(stack, axis=0) if np.isfinite(stack).any() else np.full(len(t), np.nan)
+        stack = np.array([_interp_nan(t, s["time"], s[key]) for s in sigs])
+        with warnings.catch_warnings():   # a time without cloud in any seed: NaN, not a warning
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[key] = np.nanmean(stack, axis=0)
     if all("z" in s for s in sigs):
         z = sigs[0]["z"]
         out["z"] = z
@@ -188,7 +189,6 @@ def _mean_particles(result: runs.RunResult) -> float:
 
 def uniform_front(uniform: pd.DataFrame) -> pd.DataFrame:
     """The uniform configurations no other uniform one beats in both ms/step and error, by error."""
-    from bench.pareto import pareto_front
     return pareto_front(uniform, "ms_per_step", "error").sort_values("error")
 
 
