@@ -164,7 +164,9 @@ class _Run:
         import pandas as pd
         row, profiles = self.adapter.diagnostics(sim, self.spec, state)
         when = {"step": step, "time_s": float(sim.time)}
-        extra = {k: v for k, v in (stats_row or {}).items() if k not in row}  # the shared statistics win
+        # The shared statistics keep their names; a solver's own value of the same name (e.g. its exact
+        # total_water, where the shared one is deposited on the grid) is kept as solver_<name>.
+        extra = {(k if k not in row else f"solver_{k}"): v for k, v in (stats_row or {}).items()}
         self.rows.append({**when, **row, **extra})
         if profiles is not None:
             for prof in pd.DataFrame(profiles).to_dict("records"):

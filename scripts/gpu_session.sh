@@ -46,6 +46,11 @@ for step in "$@"; do
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
+    cycling_states)  # seed 0's states at its first cycle's peak and clearest moment, for renders where pyvista is
+      python3 -c "import sys, pandas as pd; from bench.studies.cycling import cycle_states
+d = sys.argv[1] + '/data/'
+print(cycle_states(pd.read_csv(d + 'cycling_cycles.csv'), pd.read_csv(d + 'cycling_budgets.csv'), sys.argv[2]))" \
+        "$R" /tmp/cycle_states && tar cf "$OUT/cycle_states.tar" -C /tmp cycle_states ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista

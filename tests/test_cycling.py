@@ -236,3 +236,35 @@ def test_report_shows_the_cycling_study(tmp_path):
     section = build_report(tmp_path).read_text().split('<section id="compare"', 1)[1].split("<section", 1)[0]
     assert "clouds that disappear and reappear" in section and "cycling_cycles.csv" in section
     assert "data:image/png" in section and "could not build" not in section
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(2, 5), period=st.floats(300.0, 3000.0), leak=st.floats(-1e-3, 1e-3))
+def test_cycle_budgets_window_each_cycle_and_close_the_water_budget(n, period, leak):
+    import pandas as pd
+    from bench.studies.cycling import cycle_budgets, cycle_windows
+    t = np.linspace(0.0, n * period, 40 * n + 1)
+    cover = 0.5 * np.maximum(0.0, np.sin(2 * np.pi * t / period)) ** 2
+    rain = 2.0 * t / period                                      # kg, running sums
+    relax = -0.5 * np.sin(2 * np.pi * t / period)
+    water = 1e5 + relax - rain + leak * 1e5 * t / period        # C4 with a leak of `leak` per period
+    frame = pd.DataFrame({"solver": "grid", "mode": "grid", "seed": 0, "time_s": t, "cloud_cover": cover,
+                          "total_water": water, "rain_total": rain, "water_relaxation_total": relax})
+    windows = cycle_windows(cover, t)
+    assert len(windows) == n - 1                                 # the last generation never returns
+    for k, w in enumerate(windows):
+        assert w["start_s"] < w["peak_s"] < w["min_s"] < w["end_s"] and w["min_cover"] == 0.0
+        assert w["peak_s"] == pytest.approx((k + 0.25) * period, abs=period / 40 + 1e-9)
+    budgets = cycle_budgets(frame)
+    assert list(budgets["cycle"]) == list(range(1, n))
+    span = budgets["end_s"] - budgets["start_s"]
+    assert np.allclose(budgets["rain"], 2.0 * span / period)
+    assert np.allclose(budgets["closure"], leak * span / period, rtol=1e-2, atol=1e-12)   # of ~1e5 kg
+
+
+def test_cycle_budgets_name_a_missing_column():
+    import pandas as pd
+    from bench.studies.cycling import cycle_budgets
+    with pytest.raises(ValueError, match="rain_total"):
+        cycle_budgets(pd.DataFrame({"solver": [], "mode": [], "seed": [], "time_s": [], "cloud_cover": [],
+                                    "total_water": [], "water_relaxation_total": []}))

@@ -7,8 +7,12 @@ with one rule (:func:`count_cycles`).  Outputs in OUT/data:
 
 * cycling_cycles.csv: one row per solver, mode and seed: solver, mode, seed, cycles, peak_cover,
   min_cover, device, commit (and stable, steps, run_dir)
+* cycling_budgets.csv: the water budget of every full cycle of every run (:func:`cycle_budgets`):
+  its window (start_s, peak_s, end_s), peak cover, the rain, relaxation and total-water change (kg)
+  and their closure, the latent heat released (K, particles)
 * cycling_timeseries.csv: solver, mode, seed, time_s, step, cloud_cover, lwp_mean, cloud_top,
-  total_water (of the deposit grid), the water budget's running sums rain_total and
+  total_water (of the deposit grid), budget_total_water (the solver's own total, which C4 closes
+  against), the water budget's running sums rain_total and
   water_relaxation_total (kg, docs/cycling.md C4), heat_latent_total (K, particles only), device, commit
 
 Scales: ``gpu`` runs the scene files as they ship (930k particles, 4200 s).  Every other scale runs
@@ -53,6 +57,8 @@ CPU_OVERRIDES = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 1
                  "time.steps": 300, "atmosphere.relaxation_time": 600.0}
 CPU_SNAPSHOT_EVERY = 5
 GPU_SNAPSHOT_EVERY = 25
+RENDER_SNAPSHOTS = 10_000     # seed 0 stores every diagnostic state (cycle_states picks the peak and minimum)
+CLOUD_RENDER_THRESHOLD = 1e-6  # kg/kg: a cloudy particle in the compact render states
 
 
 def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR, min_peak: float = MIN_PEAK) -> dict:
@@ -81,6 +87,104 @@ def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR
     return {"cycles": cycles, "peak_cover": peak, "min_cover": float(c[start:].min())}
 
 
+def cycle_windows(cover, times, disappear: float = DISAPPEAR, reappear: float = REAPPEAR,
+                  min_peak: float = MIN_PEAK) -> list[dict]:
+    """The full cycles of a cover series as time windows, by the rule of :func:`count_cycles`.
+
+    A cycle runs from the moment the cover has vanished (first below disappear x peak; or the series'
+    first time) through its clouds' rise and peak, their decay below disappear x peak, to the moment
+    the next generation's cover is back at reappear x peak.  Returns one dict per full cycle: start_s,
+    peak_s, min_s (the clearest moment after the peak), end_s (s), peak_cover, min_cover."""
+    c = np.asarray(cover, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64)
+    if c.shape != t.shape:
+        raise ValueError(f"cover has {c.size} values, times {t.size}")
+    counted = count_cycles(c, disappear, reappear, min_peak)
+    if counted["cycles"] == 0:
+        return []
+    peak = counted["peak_cover"]
+    windows, start, down, low_at = [], 0, False, None
+    for i in range(int(np.argmax(c >= reappear * peak)), c.size):
+        if not down and c[i] < disappear * peak:
+            down, low_at = True, i
+        elif down and c[i] >= reappear * peak:
+            top = start + int(np.argmax(c[start:low_at + 1]))
+            low = top + int(np.argmin(c[top:i + 1]))
+            windows.append({"start_s": float(t[start]), "peak_s": float(t[top]), "min_s": float(t[low]),
+                            "end_s": float(t[i]), "peak_cover": float(c[top]), "min_cover": float(c[low])})
+            down, start = False, low_at
+    return windows
+
+
+def cycle_budgets(series: pd.DataFrame) -> pd.DataFrame:
+    """The water budget of every full cycle (docs/cycling.md C4) of every run in a cycling time series.
+
+    For each solver, mode, seed and cycle (:func:`cycle_windows`) the changes over the window, in kg:
+    total water (the solver's own total of vapor + cloud, ``budget_total_water``, else ``total_water``), rain (C3, removed), relaxation (C2, added; negative
+    when the forcing dries the air), and closure = d total_water - (relaxation - rain) as a fraction of
+    the window's mean total water (0 up to rounding when the run conserves water); for particle runs
+    also the latent heat released (K, mass-weighted mean warming, eq. 11).  Rows in time order."""
+    water = "budget_total_water" if "budget_total_water" in series.columns else "total_water"
+    need = {"solver", "mode", "seed", "time_s", "cloud_cover", water, "rain_total", "water_relaxation_total"}
+    missing = sorted(need - set(series.columns))
+    if missing:
+        raise ValueError(f"cycling time series lacks the column(s) {', '.join(missing)}")
+    rows = []
+    for (solver, mode, seed), run in series.groupby(["solver", "mode", "seed"], sort=False):
+        run = run.sort_values("time_s")
+        t = run["time_s"].to_numpy(np.float64)
+        for k, w in enumerate(cycle_windows(run["cloud_cover"].to_numpy(), t)):
+            a, b = run.iloc[int(np.searchsorted(t, w["start_s"]))], run.iloc[int(np.searchsorted(t, w["end_s"]))]
+            window = run[(run["time_s"] >= w["start_s"]) & (run["time_s"] <= w["end_s"])]
+            d = {key: float(b[col] - a[col]) for key, col in (("total_water", water), ("rain_total", "rain_total"),
+                                                               ("water_relaxation_total", "water_relaxation_total"))}
+            row = {"solver": solver, "mode": mode, "seed": seed, "cycle": k + 1, **w,
+                   "d_total_water": d["total_water"], "rain": d["rain_total"],
+                   "relaxation": d["water_relaxation_total"],
+                   "closure": (d["total_water"] - (d["water_relaxation_total"] - d["rain_total"]))
+                   / float(window[water].mean()),
+                   "max_lwp": float(window["lwp_mean"].max()) if "lwp_mean" in window else float("nan"),
+                   "latent_heat": (float(b["heat_latent_total"] - a["heat_latent_total"])
+                                   if "heat_latent_total" in run and np.isfinite(b["heat_latent_total"])
+                                   else float("nan"))}
+            rows.append(row)
+    return pd.DataFrame(rows, columns=["solver", "mode", "seed", "cycle", "start_s", "peak_s", "min_s", "end_s",
+                                       "peak_cover",
+                                       "min_cover", "d_total_water", "rain", "relaxation", "closure", "max_lwp",
+                                       "latent_heat"])
+
+
+def render_cycle_states(states_dir, out_dir, scene_name: str = "cycling", cpu: bool = False) -> list:
+    """Render the compact states of :func:`cycle_states` (cycle_<mode>_<peak|min>.npz in `states_dir`):
+    particles as cloud points (bench.render.render_particles), the grid's cloud field as a volume
+    (render_volume).  Writes OUT/cycling_<mode>_<peak|min>.png; returns the paths written (none
+    where pyvista cannot render: bench.render.render_or_note leaves a note instead).  ``cpu``: the states
+    come from the CPU cycle (:func:`cpu_scene`), not the scene files."""
+    from pathlib import Path
+    from bench.render import render_or_note, render_particles, render_volume
+    from bench.studies.compare import scene_pair
+    base, adaptive = scene_pair(scene_name)
+    if cpu:
+        base, adaptive = cpu_scene(base), cpu_scene(adaptive)
+    written = []
+    for path in sorted(Path(states_dir).glob("cycle_*_*.npz")):
+        mode, tag = path.stem[len("cycle_"):].rsplit("_", 1)
+        with np.load(path) as z:
+            state = {k: z[k] for k in z.files}
+        when = f"{'cover peak' if tag == 'peak' else 'clearest moment after it'}, t = {float(state['time_s']):.0f} s"
+        target = Path(out_dir) / f"cycling_{mode}_{tag}.png"
+        if "position" in state:
+            scene = adaptive if mode == "adaptive" else base
+            title = f"{scene.name} ({mode} particles), {when}"
+            done = render_or_note(render_particles, target, state, scene, title=title)
+        else:
+            title = f"{base.name} (grid), {when}"
+            done = render_or_note(render_volume, target, state["cloud"], state["cell_size"], title=title)
+        if done is not None:
+            written.append(done)
+    return written
+
+
 def cpu_scene(scene: Scene) -> Scene:
     """The CPU cycle of a cycling scene: CPU_OVERRIDES, for the adaptive twin too.  Its level-0 spacing
     is the non-adaptive one (100 m), not twice it as at GPU scale: with 200 m (and with 126 m) level-0
@@ -101,12 +205,56 @@ def cycling_specs(ctx: StudyContext, seeds: int, scene_name: str = "cycling") ->
     shape, _ = grid_for_scene(base)            # one cell per non-adaptive spacing, for all three
     out = []
     for seed in range(seeds):
+        # seed 0 keeps every diagnostic state: the renders of a cycle's peak and clearest moment come from it
+        keep = {"keep_snapshots": RENDER_SNAPSHOTS} if seed == 0 else {}
         out.append(("non-adaptive", seed, runs.RunSpec("particles", base, backend=ctx.backend, seed=seed,
-                                                        snapshot_every=every, diagnostics_resolution=shape)))
+                                                        snapshot_every=every, diagnostics_resolution=shape, **keep)))
         out.append(("adaptive", seed, runs.RunSpec("particles", adaptive, backend=ctx.backend, seed=seed,
-                                                    snapshot_every=every, diagnostics_resolution=shape)))
-        out.append(("grid", seed, runs.RunSpec("grid", base, seed=seed, resolution=shape, snapshot_every=every)))
+                                                    snapshot_every=every, diagnostics_resolution=shape, **keep)))
+        out.append(("grid", seed, runs.RunSpec("grid", base, seed=seed, resolution=shape, snapshot_every=every,
+                                               **keep)))
     return out
+
+
+def cycle_states(cycles: pd.DataFrame, budgets: pd.DataFrame, out_dir, seed: int = 0, cycle: int = 1,
+                 clear_fraction: float = 0.1) -> list:
+    """Compact states of each mode's run at its `cycle`-th cover peak and the clearest moment after it
+    (the stored snapshots nearest peak_s and min_s of :func:`cycle_budgets`), for renders: particles keep
+    every cloudy particle and `clear_fraction` of the clear ones (position, cloud, level); grid runs keep
+    the cloud-water field.  Writes OUT/cycle_<mode>_<peak|min>.npz; returns the paths written."""
+    from pathlib import Path
+    from bench.store.result import RunResult
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for row in cycles[cycles["seed"] == seed].itertuples():
+        window = budgets[(budgets["mode"] == row.mode) & (budgets["seed"] == seed) & (budgets["cycle"] == cycle)]
+        if window.empty:
+            continue
+        res = RunResult.load(row.run_dir)
+        stored = {}
+        for path in res.snapshot_paths():
+            with np.load(path) as z:
+                stored[float(z["time_s"])] = path
+        times = np.array(sorted(stored))
+        for tag, when in (("peak", float(window["peak_s"].iloc[0])), ("min", float(window["min_s"].iloc[0]))):
+            if not len(times):
+                break
+            path = stored[float(times[np.argmin(np.abs(times - when))])]
+            with np.load(path) as z:
+                state = {k: z[k] for k in z.files}
+            if "position" in state:
+                rng = np.random.default_rng(0)
+                keep = (state["cloud"] > CLOUD_RENDER_THRESHOLD) | (rng.random(len(state["cloud"])) < clear_fraction)
+                compact = {k: state[k][keep] for k in ("position", "cloud", "level") if k in state}
+            else:
+                compact = {"cloud": state["cloud"].astype(np.float32),
+                           **{k: state[k] for k in ("cell_size", "origin") if k in state}}
+            compact.update(time_s=state["time_s"], step=state["step"], cover=np.float64(row.peak_cover))
+            target = out_dir / f"cycle_{row.mode}_{tag}.npz"
+            np.savez_compressed(target, **compact)
+            written.append(target)
+    return written
 
 
 def run_cycling(ctx: StudyContext, seeds: int = MIN_SEEDS, scene_name: str = "cycling") -> dict[str, pd.DataFrame]:
@@ -125,14 +273,22 @@ def run_cycling(ctx: StudyContext, seeds: int = MIN_SEEDS, scene_name: str = "cy
         if len(stats):
             stats = stats.rename(columns=RENAMED)
             frame = stats[["time_s", "step", *(c for c in SERIES_COLUMNS if c in stats.columns)]].copy()
+            # the solver's own total water (particles: sum m (v + w), exact; grid: its field sum), the one
+            # its budget terms close against (C4); total_water is the deposit grid's
+            frame["budget_total_water"] = stats["solver_total_water" if "solver_total_water" in stats
+                                                else "total_water"]
             for i, (key, value) in enumerate((("solver", solver), ("mode", mode), ("seed", seed))):
                 frame.insert(i, key, value)
             frame["device"] = res.device
             frame["commit"] = ctx.commit
             series.append(frame)
-    out = {"cycling_cycles": pd.DataFrame(rows),
-           "cycling_timeseries": (pd.concat(series, ignore_index=True) if series
-                                  else pd.DataFrame(columns=["solver", "mode", "seed", "time_s", "step"]))}
+    timeseries = (pd.concat(series, ignore_index=True) if series
+                  else pd.DataFrame(columns=["solver", "mode", "seed", "time_s", "step", *SERIES_COLUMNS]))
+    budgets = cycle_budgets(timeseries)
+    devices = {(r["mode"], r["seed"]): r["device"] for r in rows}
+    budgets["device"] = [devices.get((m, s)) for m, s in zip(budgets["mode"], budgets["seed"])]
+    budgets["commit"] = ctx.commit
+    out = {"cycling_cycles": pd.DataFrame(rows), "cycling_timeseries": timeseries, "cycling_budgets": budgets}
     for name, frame in out.items():
         runs.write_csv(frame, ctx.data / f"{name}.csv")
     return out
@@ -149,10 +305,10 @@ def cycling_command(
         with refusals():
             frames = run_cycling(ctx, seeds)
     typer.echo(frames["cycling_cycles"][list(COLUMNS)].to_string(index=False))
-    typer.echo(f"wrote {ctx.data / 'cycling_cycles.csv'}, cycling_timeseries.csv")
+    typer.echo(f"wrote {ctx.data / 'cycling_cycles.csv'}, cycling_timeseries.csv, cycling_budgets.csv")
 
 
-register(Study("cycling", order=35, sections=("compare",), outputs=("cycling_cycles.csv", "cycling_timeseries.csv"),
+register(Study("cycling", order=35, sections=("compare",), outputs=("cycling_cycles.csv", "cycling_timeseries.csv", "cycling_budgets.csv"),
                command=cycling_command))
 
 
