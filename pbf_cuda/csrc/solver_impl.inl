@@ -652,7 +652,7 @@ public:
     // -- stepping ----------------------------------------------------------------------------
     std::string step(int n) override {
         for (int s = 0; s < n; ++s) {
-            if (p_.adaptive) do_step<true>(); else do_step<false>();
+            if (p_.adaptive) do_step<AdaptivePolicy>(); else do_step<UniformPolicy>();
             clock_.collect(totals_);
 #ifdef PBF_BACKEND_CUDA
             cudaError_t err = cudaGetLastError();
@@ -851,12 +851,12 @@ private:
     }
 
     // Density constraint iterations on the predicted positions (eq. 1-4, 18).
-    template <bool Adaptive>
+    template <class Policy>
     void solve_density(const CellRanges& bnd) {
         for (int it = 0; it < p_.iterations; ++it) {
             CellRanges fl = fluid_ranges(pred_);
-            parallel_for(n_, DensityLambda<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_)});
-            parallel_for(n_, PositionCorrection<Adaptive>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_)});
+            parallel_for(n_, DensityLambda<Policy>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(density_)});
+            parallel_for(n_, PositionCorrection<Policy>{grid_, fl, bnd, radii_, cp_, raw(lambda_), raw(pos_tmp_)});
             pred_.swap(pos_tmp_);
         }
     }
@@ -866,7 +866,7 @@ private:
     // The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
     // Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
     // v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
-    template <bool Adaptive>
+    template <class Policy>
     void project_velocity(const CellRanges& bnd) {
         CellRanges fl = fluid_ranges(pred_);
         const std::size_t n = n_;
@@ -877,10 +877,10 @@ private:
         Float4* g = raw(vel_tmp_);
         Float4* v = raw(vel_);
         float* mu = raw(cg_mu_);
-        parallel_for(n, ApplyJT<Adaptive>{grid_, fl, bnd, radii_, cp_, mu, g});
+        parallel_for(n, ApplyJT<Policy>{grid_, fl, bnd, radii_, cp_, mu, g});
         parallel_for(n, AddVelocity{g, v});
         // r = -J v, z = r / diag, p = z
-        parallel_for(n, ApplyJ<Adaptive>{grid_, fl, bnd, radii_, cp_, v, r, diag});
+        parallel_for(n, ApplyJ<Policy>{grid_, fl, bnd, radii_, cp_, v, r, diag});
         parallel_for(n, CgStart{r, diag, p});
         double rz = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
                                              thrust::counting_iterator<uint32_t>(uint32_t(n)), CgDot{r, p}, 0.0,
@@ -896,8 +896,8 @@ private:
             return rr <= tol2;
         };
         for (int it = 0; it < p_.divergence_iterations && rz > 0.0 && !converged(); ++it) {
-            parallel_for(n, ApplyJT<Adaptive>{grid_, fl, bnd, radii_, cp_, p, g});           // g = M^-1 J^T p
-            parallel_for(n, ApplyJ<Adaptive>{grid_, fl, bnd, radii_, cp_, g, q, nullptr});   // q = A p
+            parallel_for(n, ApplyJT<Policy>{grid_, fl, bnd, radii_, cp_, p, g});           // g = M^-1 J^T p
+            parallel_for(n, ApplyJ<Policy>{grid_, fl, bnd, radii_, cp_, g, q, nullptr});   // q = A p
             double pq = thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
                                                  thrust::counting_iterator<uint32_t>(uint32_t(n)), CgDot{p, q}, 0.0,
                                                  thrust::plus<double>());
@@ -921,7 +921,7 @@ private:
         }
     }
 
-    template <bool Adaptive>
+    template <class Policy>
     void do_step() {
         const float dt = p_.dt;
         const bool vproj = p_.velocity_projection;
@@ -937,17 +937,17 @@ private:
 
         clock_.begin(kPhaseSolver);
         CellRanges bnd = boundary_ranges();
-        solve_density<Adaptive>(bnd);
+        solve_density<Policy>(bnd);
         if (!vproj) parallel_for(n_, UpdateVelocity{raw(pos_), raw(pred_), raw(vel_), 1.0f / dt});
         if (p_.xsph > 0.0f || p_.vorticity > 0.0f || p_.viscosity > 0.0f) {
             CellRanges fl = fluid_ranges(pred_);
             bool vort = p_.vorticity > 0.0f;
-            parallel_for(n_, ViscosityVorticity<Adaptive>{grid_, fl, radii_, p_.h0, p_.xsph, p_.viscosity * dt,
+            parallel_for(n_, ViscosityVorticity<Policy>{grid_, fl, radii_, p_.h0, p_.xsph, p_.viscosity * dt,
                                                           cp_.inv_rest_density, vort, raw(vel_), raw(density_),
                                                           raw(vel_tmp_), vort ? raw(omega_) : nullptr});
             vel_.swap(vel_tmp_);
             if (vort)
-                parallel_for(n_, VorticityConfinement<Adaptive>{grid_, fl, radii_, p_.h0, p_.vorticity, dt,
+                parallel_for(n_, VorticityConfinement<Policy>{grid_, fl, radii_, p_.h0, p_.vorticity, dt,
                                                                 raw(density_), raw(omega_), raw(vel_)});
         }
         clock_.end(kPhaseSolver);
@@ -965,7 +965,7 @@ private:
                 sf.in[k] = raw(*fields[k]);
                 sf.out[k] = raw(smooth_out_[k]);
             }
-            parallel_for(n_, SmoothScalars<Adaptive>{grid_, fluid_ranges(pred_), radii_, p_.h0, cp_.inv_rest_density,
+            parallel_for(n_, SmoothScalars<Policy>{grid_, fluid_ranges(pred_), radii_, p_.h0, cp_.inv_rest_density,
                                                      p_.smoothing_beta, p_.smoothing_epsilon, p_.lapse_rate, sf});
             for (int k = 0; k < 3; ++k)
                 if (p_.smooth_fields[k]) fields[k]->swap(smooth_out_[k]);
@@ -989,7 +989,7 @@ private:
             clock_.begin(kPhaseSolver);
             if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
                 parallel_for(n_, AddAcceleration{raw(vel_), dt * gravity});
-            project_velocity<Adaptive>(bnd);
+            project_velocity<Policy>(bnd);
             clock_.end(kPhaseSolver);
         }
         clock_.end(kPhasePBF);
