@@ -15,7 +15,6 @@ namespace pbf {
 
 // Every particle is level 0: radius h0, plain kernels, the uniform grid search.
 struct UniformPolicy {
-    static constexpr bool kAdaptive = false;
     static PBF_HD float radius(const LevelRadii&, float h0, float) { return h0; }
     static PBF_HD float W(float r2, float hi, float) { return poly6(r2, hi); }
     static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float) { return spiky_gradient(r, r2, hi); }
@@ -31,7 +30,6 @@ struct UniformPolicy {
 
 // Particles of several levels: radius from the mass, symmetric kernels (eq. 19), the nested search.
 struct AdaptivePolicy {
-    static constexpr bool kAdaptive = true;
     static PBF_HD float radius(const LevelRadii& radii, float, float m) { return radii.radius_of_mass(m); }
     static PBF_HD float W(float r2, float hi, float hj) { return poly6_sym(r2, hi, hj); }
     static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient_sym(r, r2, hi, hj); }
