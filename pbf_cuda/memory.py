@@ -1,6 +1,6 @@
 """Memory a particle simulation needs, estimated before anything is allocated.
 
-The estimate counts the solver's per-slot arrays (solver_impl.inl: six float4, nine float, eight
+The estimate counts the solver's per-slot arrays (solver_data.h: six float4, nine float, eight
 uint32 and two byte-sized arrays per particle slot, plus sorting scratch), the boundary particles,
 the uniform cell grid, and the host arrays built while the initial state is made.  Adaptive scenes
 reserve ``adaptive.capacity`` slots per initial particle.  :func:`check_memory` compares it with
