@@ -24,17 +24,17 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
-from pbf_cuda.export import FIELD_ATTRS, fields_to_xarray, write_pvd, write_particle_series
+from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
+from pbf_cuda.export import FIELD_ATTRS, write_particle_series
 
 __all__ = ["FORMATS", "particles_to_xarray", "run_to_xarray", "combine_solvers", "export_run", "run_info"]
 
 FORMATS = ("vtu", "vtp", "netcdf", "zarr")
 SUFFIX = {"vtu": "", "vtp": "", "netcdf": ".nc", "zarr": ".zarr"}
-DEPOSITED = ("temperature", "vapor", "cloud")
 
 
 def _scene_from_identity(identity: Mapping):
@@ -62,61 +62,15 @@ def _load_npz(path: Path) -> dict:
         return {k: z[k] for k in z.files}
 
 
-def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None, like=None,
-                        time: float | None = None, step: int | None = None, attrs: Mapping | None = None):
-    """Particles deposited on a grid as an ``xarray.Dataset`` (the grid baseline's layout).
-
-    The grid: ``like`` (a Dataset whose ``x``, ``y``, ``z`` are cell centres of a regular grid from
-    the origin, e.g. ``GridSimulation.to_xarray()``), else ``bench.statistics.grid_for_scene(scene,
-    resolution)`` (default: one cell per particle spacing, the grid baseline's default).  Variables:
-    ``density`` (kg/m^3) and the Shepard averages of temperature, vapor, cloud and velocity_x/y/z,
-    with the CF attributes of :data:`pbf_cuda.export.FIELD_ATTRS`."""
-    from bench import statistics
-    origin = np.zeros(3)
-    if like is not None:
-        shape = tuple(int(like.sizes[k]) for k in "xyz")
-        centres = [np.asarray(like[k].values, dtype=np.float64) for k in "xyz"]
-        cell_size = np.array([c[1] - c[0] if len(c) > 1 else 2 * c[0] for c in centres])
-        origin = np.array([c[0] for c in centres]) - cell_size / 2
-        for k, c, d in zip("xyz", centres, cell_size):
-            if not np.allclose(np.diff(c), d, rtol=1e-9, atol=0):
-                raise ValueError(f"like: coordinate {k} is not a regular grid of cell centres")
-    else:
-        shape, cell_size = statistics.grid_for_scene(scene, resolution)
-    fields = {k: state[k] for k in DEPOSITED if k in state}
-    vel = np.asarray(state["velocity"], dtype=np.float64)
-    for a, axis in enumerate("xyz"):
-        fields[f"velocity_{axis}"] = vel[:, a]
-    periodic = tuple(b == "periodic" for b in scene.domain.boundary)
-    grid = statistics.deposit(state["position"], state["mass"], state["kernel_radius"], fields, shape, cell_size,
-                              periodic=periodic, origin=origin)
-    org = grid.pop("origin")
-    size = grid.pop("cell_size")
-    return fields_to_xarray(grid, cell_size=size, origin=org, time=time, step=step, attrs={
-        "source": "cloudpbf particles (PBF) deposited with the poly6 kernel", "solver": "particles",
-        "scene": scene.name, **dict(attrs or {})})
-
-
-def _snapshot_dataset(solver: str, snap: dict, scene, resolution, like):
-    step = int(snap.get("step", 0))
-    time = float(snap.get("time_s", 0.0))
-    if solver == "grid":
-        fields = {k: v for k, v in snap.items() if k not in ("step", "time_s", "origin")}
-        return fields_to_xarray(fields, time=time, step=step, attrs={
-            "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": scene.name})
-    if not scene.thermodynamics:
-        raise ValueError(f"{scene.name}: NetCDF/zarr export deposits cloud fields and needs a scene with an "
-                         "[atmosphere] section; use --format vtu or vtp for plain-fluid runs")
-    return particles_to_xarray(snap, scene, resolution=resolution, like=like, time=time, step=step)
-
-
 def run_to_xarray(run_dir: str | Path, resolution=None, like=None):
     """Every snapshot of a run as one Dataset with dimensions (time, x, y, z); ``step`` is a
     coordinate along time.  Particle runs are deposited (see :func:`particles_to_xarray`)."""
     import xarray as xr
     info = run_info(run_dir)
     scene = _scene_from_identity(info["identity"])
-    frames = [_snapshot_dataset(info["solver"], _load_npz(p), scene, resolution, like) for p in info["snapshots"]]
+    adapter = ADAPTERS[info["solver"]]
+    frames = [adapter.snapshot_dataset(_load_npz(p), scene, resolution=resolution, like=like)
+              for p in info["snapshots"]]
     stacked = []
     for f in frames:
         attrs = dict(f["step"].attrs)
@@ -167,9 +121,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
     name = f"{info['solver']}-{scene.name}"
     out = Path(out) if out is not None else run_dir / "export" / f"{name}{SUFFIX[fmt]}"
     if fmt in ("vtu", "vtp"):
-        frames = [_load_npz(p) for p in info["snapshots"]]
-        if info["solver"] == "grid":
-            frames = [_grid_points(f) for f in frames]
+        frames = [ADAPTERS[info["solver"]].snapshot_points(_load_npz(p)) for p in info["snapshots"]]
         return write_particle_series(frames, out, fmt=fmt, name=name, scene_name=scene.name)
     ds = run_to_xarray(run_dir, resolution=resolution)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -183,21 +135,6 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
     if out.is_dir():
         shutil.rmtree(out)
     os.replace(tmp, out)
-    return out
-
-
-def _grid_points(snap: dict) -> dict:
-    """A grid snapshot as 'particles' at its cell centres (for .vtp/.vtu point series)."""
-    x, y, z = (np.asarray(snap[k]) for k in "xyz")
-    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
-    out = {"position": np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1),
-           "step": snap.get("step", 0), "time_s": snap.get("time_s", 0.0)}
-    for k, v in snap.items():
-        arr = np.asarray(v)
-        if arr.ndim == 3:
-            out[k] = arr.ravel()
-        elif arr.ndim == 4 and k == "velocity":
-            out[k] = arr.reshape(-1, 3)
     return out
 
 

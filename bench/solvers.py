@@ -1,21 +1,25 @@
 """The solvers behind the run loop.  Both solvers speak pbf_cuda.protocol.SimulationProtocol (step, state,
 stats, timings, save, size; one InstabilityError); an adapter holds what still differs: how a run is
-made and restored, what its memory check and its diagnostics are.  ADAPTERS is the table bench.execution
-looks them up in."""
+made and restored, what its memory check and its diagnostics are, and how a stored snapshot becomes
+points (ParaView series) and a gridded Dataset (NetCDF / zarr).  ADAPTERS is the table bench.execution
+and bench.export look them up in."""
 from __future__ import annotations
 
 import json
 import math
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
 from pbf_cuda.protocol import InstabilityError
 
-__all__ = ["ADAPTERS", "SOLVERS", "SolverAdapter", "ParticleAdapter", "GridAdapter", "InstabilityError", "flatten"]
+__all__ = ["ADAPTERS", "SOLVERS", "SolverAdapter", "ParticleAdapter", "GridAdapter", "InstabilityError", "flatten",
+           "particles_to_xarray"]
 
 STATS_VECTOR_AXES = "xyz"
 GRID_BYTES_PER_CELL = 800    # fields, auxiliaries and jit buffers of the grid baseline in float64
+DEPOSITED = ("temperature", "vapor", "cloud")   # particle fields deposited for a gridded export
 
 
 def flatten(values: dict) -> dict:
@@ -93,6 +97,17 @@ class SolverAdapter:
         """The size fields of result.json: the largest size the run reached, and splits turned away."""
         return {}
 
+    @staticmethod
+    def snapshot_points(snap: dict) -> dict:
+        """A stored snapshot as points with per-point fields (position (N, 3) m, ...), as
+        pbf_cuda.export.write_particle_series takes them; particles already are."""
+        return snap
+
+    @staticmethod
+    def snapshot_dataset(snap: dict, scene, resolution=None, like=None):
+        """A stored snapshot as an xarray.Dataset on cell centres (x, y, z), CF attributes on every field."""
+        raise NotImplementedError
+
 
 class ParticleAdapter(SolverAdapter):
     """pbf_cuda.Simulation behind the run loop."""
@@ -169,6 +184,15 @@ class ParticleAdapter(SolverAdapter):
         grid = statistics.deposit_state(state, scene, spec.diagnostics_resolution)
         periodic = tuple(b == "periodic" for b in scene.domain.boundary)
         return statistics.diagnostics(grid, periodic=periodic), statistics.vertical_profiles(grid)
+
+    @staticmethod
+    def snapshot_dataset(snap: dict, scene, resolution=None, like=None):
+        """The particles deposited with the poly6 kernel (see particles_to_xarray); needs an [atmosphere]."""
+        if not scene.thermodynamics:
+            raise ValueError(f"{scene.name}: NetCDF/zarr export deposits cloud fields and needs a scene with an "
+                             "[atmosphere] section; use --format vtu or vtp for plain-fluid runs")
+        return particles_to_xarray(snap, scene, resolution=resolution, like=like,
+                                   time=float(snap.get("time_s", 0.0)), step=int(snap.get("step", 0)))
 
 
 def nonfinite_ids(state: dict) -> list[int]:
@@ -251,6 +275,65 @@ class GridAdapter(SolverAdapter):
         """(diagnostics row, vertical profiles) of the grid's fields."""
         from bench import statistics
         return statistics.grid_diagnostics(state, sim.scene), statistics.grid_profiles(state, sim.scene)
+
+    @staticmethod
+    def snapshot_points(snap: dict) -> dict:
+        """A grid snapshot as 'particles' at its cell centres (for .vtp/.vtu point series)."""
+        x, y, z = (np.asarray(snap[k]) for k in "xyz")
+        X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+        out = {"position": np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1),
+               "step": snap.get("step", 0), "time_s": snap.get("time_s", 0.0)}
+        for k, v in snap.items():
+            arr = np.asarray(v)
+            if arr.ndim == 3:
+                out[k] = arr.ravel()
+            elif arr.ndim == 4 and k == "velocity":
+                out[k] = arr.reshape(-1, 3)
+        return out
+
+    @staticmethod
+    def snapshot_dataset(snap: dict, scene, resolution=None, like=None):
+        """The grid's own fields (resolution and like do not apply: the cells are the grid's)."""
+        from pbf_cuda.export import fields_to_xarray
+        fields = {k: v for k, v in snap.items() if k not in ("step", "time_s", "origin")}
+        return fields_to_xarray(fields, time=float(snap.get("time_s", 0.0)), step=int(snap.get("step", 0)), attrs={
+            "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": scene.name})
+
+
+def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None, like=None,
+                        time: float | None = None, step: int | None = None, attrs: Mapping | None = None):
+    """Particles deposited on a grid as an ``xarray.Dataset`` (the grid baseline's layout).
+
+    The grid: ``like`` (a Dataset whose ``x``, ``y``, ``z`` are cell centres of a regular grid from
+    the origin, e.g. ``GridSimulation.to_xarray()``), else ``bench.statistics.grid_for_scene(scene,
+    resolution)`` (default: one cell per particle spacing, the grid baseline's default).  Variables:
+    ``density`` (kg/m^3) and the Shepard averages of temperature, vapor, cloud and velocity_x/y/z,
+    with the CF attributes of :data:`pbf_cuda.export.FIELD_ATTRS`."""
+    from bench import statistics
+    from pbf_cuda.export import fields_to_xarray
+    origin = np.zeros(3)
+    if like is not None:
+        shape = tuple(int(like.sizes[k]) for k in "xyz")
+        centres = [np.asarray(like[k].values, dtype=np.float64) for k in "xyz"]
+        cell_size = np.array([c[1] - c[0] if len(c) > 1 else 2 * c[0] for c in centres])
+        origin = np.array([c[0] for c in centres]) - cell_size / 2
+        for k, c, d in zip("xyz", centres, cell_size):
+            if not np.allclose(np.diff(c), d, rtol=1e-9, atol=0):
+                raise ValueError(f"like: coordinate {k} is not a regular grid of cell centres")
+    else:
+        shape, cell_size = statistics.grid_for_scene(scene, resolution)
+    fields = {k: state[k] for k in DEPOSITED if k in state}
+    vel = np.asarray(state["velocity"], dtype=np.float64)
+    for a, axis in enumerate("xyz"):
+        fields[f"velocity_{axis}"] = vel[:, a]
+    periodic = tuple(b == "periodic" for b in scene.domain.boundary)
+    grid = statistics.deposit(state["position"], state["mass"], state["kernel_radius"], fields, shape, cell_size,
+                              periodic=periodic, origin=origin)
+    org = grid.pop("origin")
+    size = grid.pop("cell_size")
+    return fields_to_xarray(grid, cell_size=size, origin=org, time=time, step=step, attrs={
+        "source": "cloudpbf particles (PBF) deposited with the poly6 kernel", "solver": "particles",
+        "scene": scene.name, **dict(attrs or {})})
 
 
 ADAPTERS = {"particles": ParticleAdapter, "grid": GridAdapter}

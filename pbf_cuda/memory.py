@@ -1,6 +1,6 @@
 """Memory a particle simulation needs, estimated before anything is allocated.
 
-The estimate counts the solver's per-slot arrays (solver_impl.inl: six float4, nine float, eight
+The estimate counts the solver's per-slot arrays (solver_data.h: six float4, nine float, eight
 uint32 and two byte-sized arrays per particle slot, plus sorting scratch), the boundary particles,
 the uniform cell grid, and the host arrays built while the initial state is made.  Adaptive scenes
 reserve ``adaptive.capacity`` slots per initial particle.  :func:`check_memory` compares it with
@@ -75,14 +75,20 @@ def cell_count(scene: Scene) -> int:
     return total
 
 
+def particle_slots(scene: Scene, n: int) -> int:
+    """Particle slots the solver preallocates for `n` initial particles: n, or adaptive.capacity times n
+    for an adaptive scene (room for the children of splits)."""
+    if scene.adaptive.enabled:
+        return max(n, int(math.ceil(n * scene.adaptive.capacity)))
+    return n
+
+
 def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
                     boundary: int | None = None) -> MemoryEstimate:
     """Bytes a Simulation of `scene` needs on `backend` ('cpu' or 'cuda'); `fluid`/`boundary` override
     the particle counts (a simulation made from given arrays)."""
     n = scene.estimated_particles() if fluid is None else int(fluid)
-    slots = n
-    if scene.adaptive.enabled:
-        slots = max(n, int(math.ceil(n * scene.adaptive.capacity)))
+    slots = particle_slots(scene, n)
     nb = boundary_count(scene) if boundary is None else int(boundary)
     cells = cell_count(scene)
     per_slot = BYTES_PER_SLOT.get(backend, BYTES_PER_SLOT["cpu"])

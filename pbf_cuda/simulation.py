@@ -12,7 +12,6 @@ copies them to numpy, :meth:`device_arrays` gives zero-copy DLPack views.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from .files import atomic_savez, read_meta
 from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
 from .protocol import InstabilityError
-from .memory import check_memory
+from .memory import check_memory, particle_slots
 from .scene import Scene, load_scene, scene_from_dict
 
 __all__ = ["Simulation", "InstabilityError", "available_backends"]
@@ -70,83 +69,102 @@ def _resolve_backend(backend: str) -> str:
     return backend
 
 
-def build_params(scene: Scene, capacity: int):
-    """Flatten a Scene into the solver's parameter struct (derived constants computed here)."""
-    core = _core()
-    p = core.Params()
+# The solver parameters computed from the scene, and the scene fields each one reads. Every other
+# parameter is copied unchanged from the scene field declared beside it in csrc/params.h (PBF_PARAMS).
+DERIVED = {
+    "periodic": ("domain.boundary",),
+    "spacing": ("domain.size", "particles.spacing"),
+    "h0": ("particles.spacing", "particles.kernel_ratio"),
+    "mass0": ("domain.size", "particles.spacing", "particles.kernel_ratio", "particles.rest_density"),
+    "relaxation": ("pbf.relaxation", "domain.size", "particles.spacing", "particles.kernel_ratio",
+                   "particles.rest_density"),
+    "lambda_ref": ("domain.size", "particles.spacing", "particles.kernel_ratio", "particles.rest_density"),
+    "velocity_projection": ("pbf.projection",),
+    "thermodynamics": ("atmosphere",),
+    "saturation": ("atmosphere.saturation_a", "atmosphere.saturation_b", "atmosphere.saturation_c"),
+    "heating_rate": ("atmosphere.heating_rate", "atmosphere.heating_depth", "particles.spacing"),
+    "heating_depth": ("atmosphere.heating_depth", "particles.spacing"),
+    "vapor_relative": ("atmosphere.vapor_profile",),
+    "kappa": ("atmosphere", "smoothing.kappa", "smoothing.fields"),
+    "smoothing_beta": ("atmosphere", "smoothing.kappa", "smoothing.fields", "smoothing.epsilon", "domain.size",
+                       "particles.spacing", "particles.kernel_ratio", "particles.rest_density"),
+    "smooth_fields": ("smoothing.fields",),
+    "max_level": ("adaptive.enabled", "adaptive.max_level"),
+    "lookahead_height": ("adaptive.criterion", "adaptive.lookahead_height"),
+    "capacity": (),            # of the particle count, not of the scene alone: memory.particle_slots
+}
+
+# The scene fields that no solver parameter reads, and what reads them instead.
+OUTSIDE_SOLVER = {
+    "particles.fill_min": "initial_state: the filled box",
+    "particles.fill_max": "initial_state: the filled box",
+    "particles.max_speed": "initial_state: initial velocities",
+    "particles.seed": "initial_state: initial velocities",
+    "time.steps": "the harness: run length",
+    "time.snapshot_every": "the harness: snapshots",
+    "wave.amplitude": "initial_state: the initial gravity wave",
+    "wave.modes_x": "initial_state: the initial gravity wave",
+    "wave.modes_y": "initial_state: the initial gravity wave",
+    "adaptive.capacity": "Simulation: the capacity parameter, adaptive.capacity times the particle count",
+}
+
+
+def derived_params(scene: Scene, capacity: int, core=None) -> dict:
+    """The values of the DERIVED solver parameters for `scene` (SI units, as csrc/params.h states them)."""
+    core = core or _core()
+    out = {}
     h0 = scene.kernel_radius
     rho0 = scene.particles.rest_density
     # m0 such that a full lattice neighbourhood has density exactly rho0 (eq. 1).
     m0 = initial_state.lattice_mass(scene)
     d = float(np.prod(initial_state.lattice_spacings(scene)) ** (1.0 / 3.0))   # mean lattice spacing
-    p.domain = list(scene.domain.size)
-    p.periodic = [b == "periodic" for b in scene.domain.boundary]
-    p.spacing = d
-    p.h0 = h0
-    p.rest_density = rho0
-    p.mass0 = m0
-    p.dt = scene.time.dt
-    pb = scene.pbf
-    p.iterations = pb.iterations
+    out["periodic"] = [b == "periodic" for b in scene.domain.boundary]
+    out["spacing"] = d
+    out["h0"] = h0
+    out["mass0"] = m0
     grad2 = reference_gradient_norm2(h0, d, m0, rho0)   # sum_k |grad_k C_i|^2 / m_k of a full lattice
-    p.relaxation = pb.relaxation * grad2
-    p.lambda_ref = 1.0 / grad2                          # lambda of a unit constraint violation
-    p.unilateral = pb.unilateral
-    p.velocity_projection = pb.projection == "velocity"
-    p.divergence_iterations = pb.divergence_iterations
-    p.divergence_tolerance = pb.divergence_tolerance
-    p.viscosity = pb.viscosity
-    p.scorr_k = pb.scorr_k
-    p.scorr_n = pb.scorr_n
-    p.scorr_dq = pb.scorr_dq
-    p.xsph = pb.xsph
-    p.vorticity = pb.vorticity
-    p.gravity = list(pb.gravity)
-    p.max_velocity = pb.max_velocity
-    p.max_density_error = pb.max_density_error
-    p.check_every = scene.time.check_every
-    p.thermodynamics = scene.thermodynamics
+    out["relaxation"] = scene.pbf.relaxation * grad2
+    out["lambda_ref"] = 1.0 / grad2                     # lambda of a unit constraint violation
+    out["velocity_projection"] = scene.pbf.projection == "velocity"
+    out["thermodynamics"] = scene.thermodynamics
     if scene.thermodynamics:
         a = scene.atmosphere
-        p.ground_temperature = a.ground_temperature
-        p.lapse_rate = a.lapse_rate
-        p.buoyancy = a.buoyancy
-        p.cloud_gravity = a.cloud_gravity
-        p.dry_lapse_rate = a.dry_lapse_rate
-        p.latent_heat = a.latent_heat
-        p.phase_rate = a.phase_rate
-        p.saturation = [a.saturation_a, a.saturation_b, a.saturation_c]
+        out["saturation"] = [a.saturation_a, a.saturation_b, a.saturation_c]
         # Ground heating acts on the lowest particle layer at least; the rate is scaled so the heat
         # flux S_e * heating_depth (K m/s) does not depend on the particle spacing.
         depth = max(a.heating_depth, scene.particles.spacing)
-        p.heating_rate = a.heating_rate * (a.heating_depth / depth if depth > 0 else 0.0)
-        p.heating_depth = depth
-        p.noise_frequency = a.noise_frequency
-        p.noise_amplitude = a.noise_amplitude
-        p.heating_patch_radius = a.heating_patch_radius
-        p.noise_offset = list(a.noise_offset)
-        # Large-scale forcing (docs/cycling.md, eq. C1-C3)
-        p.diurnal_period = a.diurnal_period
-        p.relaxation_time = a.relaxation_time
-        p.autoconversion_rate = a.autoconversion_rate
-        p.autoconversion_threshold = a.autoconversion_threshold
-        p.initial_vapor_ratio = a.initial_vapor_ratio
-        p.vapor_relative = a.vapor_profile == "relative"
+        out["heating_rate"] = a.heating_rate * (a.heating_depth / depth if depth > 0 else 0.0)
+        out["heating_depth"] = depth
+        out["vapor_relative"] = a.vapor_profile == "relative"
         sm = scene.smoothing
-        p.kappa = sm.kappa if scene.smoothing_active else 0.0
-        p.smoothing_beta = p.kappa * core.reference_smoothing_beta(h0, d, m0, rho0, sm.epsilon)
-        p.smooth_fields = [f in sm.fields for f in ("temperature", "vapor", "cloud")]
-        p.smoothing_epsilon = sm.epsilon
+        kappa = sm.kappa if scene.smoothing_active else 0.0
+        out["kappa"] = kappa
+        # kappa as the solver holds it (float32) times beta_0 of a full lattice (eq. 17)
+        out["smoothing_beta"] = float(np.float32(kappa)) * core.reference_smoothing_beta(h0, d, m0, rho0, sm.epsilon)
+        out["smooth_fields"] = [f in sm.fields for f in ("temperature", "vapor", "cloud")]
     ad = scene.adaptive
-    p.adaptive = ad.enabled
-    p.max_level = ad.max_level if ad.enabled else 0
-    p.k_p = ad.k_p
-    p.k_c = ad.k_c
-    p.split_threshold = ad.split_threshold
-    p.merge_threshold = ad.merge_threshold
-    p.min_distance = ad.min_distance
-    p.lookahead_height = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
-    p.capacity = capacity
+    out["max_level"] = ad.max_level if ad.enabled else 0
+    out["lookahead_height"] = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
+    out["capacity"] = capacity
+    return out
+
+
+def build_params(scene: Scene, capacity: int):
+    """Flatten a Scene into the solver's parameter struct: the scene fields csrc/params.h names are copied,
+    the DERIVED parameters computed (without an [atmosphere] the thermodynamic ones keep their defaults,
+    which the solver never reads)."""
+    core = _core()
+    p = core.Params()
+    for name, _type, length, source in core.declared_params():
+        if not source:
+            continue
+        section, key = source.split(".")
+        values = getattr(scene, section)
+        if values is not None:              # an optional section ([atmosphere]) the scene leaves out
+            value = getattr(values, key)
+            setattr(p, name, list(value) if length else value)
+    for name, value in derived_params(scene, capacity, core).items():
+        setattr(p, name, value)
     return p
 
 
@@ -188,10 +206,7 @@ class Simulation:
                      boundary=len(_state["boundary"]["position"]) if _state else None)
         fluid = _state["fluid"] if _state else initial_state.fluid_particles(scene)
         boundary = _state["boundary"] if _state else initial_state.boundary_particles(scene)
-        n = len(fluid["id"])
-        capacity = n
-        if scene.adaptive.enabled:
-            capacity = max(n, int(math.ceil(n * scene.adaptive.capacity)))
+        capacity = particle_slots(scene, len(fluid["id"]))
         self.capacity = capacity
         self._params = build_params(scene, capacity)
         core = _core()

@@ -236,35 +236,31 @@ double reference_smoothing_beta(float h, float d, float m, float rho0, float eps
 NB_MODULE(_core, m) {
     m.doc() = "cloudpbf particle solver core (one C++ source; CUDA and OpenMP backends)";
 
+    // Params: one attribute per parameter of PBF_PARAMS (params.h); arrays read and write as lists.
     nb::class_<pbf::Params> params(m, "Params");
     params.def(nb::init<>());
-#define PBF_RW(name) params.def_rw(#name, &pbf::Params::name)
-    PBF_RW(spacing); PBF_RW(h0); PBF_RW(rest_density); PBF_RW(mass0); PBF_RW(dt); PBF_RW(check_every);
-    PBF_RW(iterations); PBF_RW(relaxation); PBF_RW(lambda_ref); PBF_RW(unilateral); PBF_RW(scorr_k);
-    PBF_RW(scorr_n); PBF_RW(scorr_dq); PBF_RW(xsph); PBF_RW(vorticity); PBF_RW(max_velocity);
-    PBF_RW(velocity_projection); PBF_RW(divergence_iterations); PBF_RW(divergence_tolerance); PBF_RW(viscosity); PBF_RW(smoothing_beta);
-    PBF_RW(max_density_error); PBF_RW(thermodynamics); PBF_RW(ground_temperature); PBF_RW(lapse_rate);
-    PBF_RW(buoyancy); PBF_RW(cloud_gravity); PBF_RW(dry_lapse_rate); PBF_RW(latent_heat); PBF_RW(phase_rate);
-    PBF_RW(diurnal_period); PBF_RW(relaxation_time); PBF_RW(autoconversion_rate);
-    PBF_RW(autoconversion_threshold); PBF_RW(initial_vapor_ratio); PBF_RW(vapor_relative);
-    PBF_RW(heating_rate); PBF_RW(heating_depth); PBF_RW(noise_frequency); PBF_RW(noise_amplitude); PBF_RW(heating_patch_radius);
-    PBF_RW(kappa); PBF_RW(smoothing_epsilon); PBF_RW(adaptive); PBF_RW(max_level); PBF_RW(k_p); PBF_RW(k_c);
-    PBF_RW(split_threshold); PBF_RW(merge_threshold); PBF_RW(min_distance); PBF_RW(lookahead_height); PBF_RW(capacity);
-#undef PBF_RW
-#define PBF_ARRAY(name, T, N)                                                                      \
+#define PBF_BIND_SCALAR(type, name, source, value) params.def_rw(#name, &pbf::Params::name);
+#define PBF_BIND_ARRAY(type, name, length, source, ...)                                            \
     params.def_prop_rw(                                                                            \
-        #name, [](const pbf::Params& p) { return std::vector<T>(p.name, p.name + N); },            \
-        [](pbf::Params& p, const std::vector<T>& v) {                                              \
-            if (v.size() != N) throw std::invalid_argument(#name ": expected " #N " values");       \
-            for (int k = 0; k < N; ++k) p.name[k] = v[k];                                          \
-        })
-    PBF_ARRAY(domain, float, 3);
-    PBF_ARRAY(periodic, bool, 3);
-    PBF_ARRAY(gravity, float, 3);
-    PBF_ARRAY(saturation, float, 3);
-    PBF_ARRAY(noise_offset, float, 2);
-    PBF_ARRAY(smooth_fields, bool, 3);
-#undef PBF_ARRAY
+        #name, [](const pbf::Params& p) { return std::vector<type>(p.name, p.name + length); },    \
+        [](pbf::Params& p, const std::vector<type>& v) {                                           \
+            if (v.size() != length) throw std::invalid_argument(#name ": expected " #length " values"); \
+            for (int k = 0; k < length; ++k) p.name[k] = v[k];                                     \
+        });
+    PBF_PARAMS(PBF_BIND_SCALAR, PBF_BIND_ARRAY)
+#undef PBF_BIND_SCALAR
+#undef PBF_BIND_ARRAY
+    // The declaration itself: (name, C++ type, length (0: a scalar), scene field ("": computed by
+    // pbf_cuda.simulation.build_params)) per parameter, in the order of params.h.
+    m.def("declared_params", []() {
+        std::vector<std::tuple<std::string, std::string, int, std::string>> out;
+#define PBF_DECLARED_SCALAR(type, name, source, value) out.emplace_back(#name, #type, 0, source);
+#define PBF_DECLARED_ARRAY(type, name, length, source, ...) out.emplace_back(#name, #type, length, source);
+        PBF_PARAMS(PBF_DECLARED_SCALAR, PBF_DECLARED_ARRAY)
+#undef PBF_DECLARED_SCALAR
+#undef PBF_DECLARED_ARRAY
+        return out;
+    });
 
     nb::class_<PySolver>(m, "Solver")
         .def(nb::init<const pbf::Params&, const std::string&>(), "params"_a, "backend"_a)

@@ -294,13 +294,4 @@ PBF_HD inline void for_each_neighbor_strided(const GridGeometry& g, const CellRa
     for_each_in_block_strided(g, set, c, xi, r_max, slack, first, stride, f);
 }
 
-// The fluid-fluid neighbour loop of every adaptive-aware phase for particle i of `set` at q: the nested search
-// for adaptive runs, the plain 27-cell search with radius h0 for uniform ones.
-template <bool Adaptive, class F>
-PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q, float h0,
-                                           F&& f) {
-    if constexpr (Adaptive) for_each_neighbor_nested(g, set, i, q, f);
-    else for_each_neighbor(g, set, q, h0, f);
-}
-
 }  // namespace pbf

@@ -20,6 +20,7 @@
 #pragma once
 #include "common.h"
 #include "grid.h"
+#include "kernel_policy.h"
 #include "kernels.h"
 
 namespace pbf {
@@ -36,8 +37,55 @@ struct ConstraintParams {
     float scorr_dq;         // dq / h
 };
 
+// ---- the neighbour sums the four constraint kernels share ---------------------------------------
+// The density constraint's neighbourhood of fluid particle i at xi: on_fluid(j, r, r2, m_j, h_j) for every fluid
+// neighbour (i itself included, r2 = 0), then on_wall(r, r2, m_b) for every boundary particle within h0 when i is
+// near a wall (boundary particles have the level-0 radius h0).
+template <class Policy, class Fluid, class Wall>
+PBF_HD inline void for_each_constraint_neighbor(const GridGeometry& grid, const CellRanges& fluid,
+                                                const CellRanges& boundary, const LevelRadii& radii, float h0,
+                                                uint32_t i, Vec3 xi, Fluid&& on_fluid, Wall&& on_wall) {
+    for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, on_fluid);
+    if (boundary.start && near_wall(grid, xi, h0)) {
+        for_each_neighbor(grid, boundary, xi, h0, [&](uint32_t b, Vec3 r, float r2) { on_wall(r, r2, boundary.pos[b].w); });
+    }
+}
+
+// Row i of the constraint Jacobian J = grad C, summed over the neighbourhood: grad_i C_i and the Jacobi diagonal
+// sum_k |grad_k C_i|^2 / m_k (the denominator of eq. 4 without epsilon). Fluid neighbours contribute
+// grad_j C_i = -(m_j / rho0) grad W_ij to the sum and its negative to grad_i C_i; walls only to grad_i C_i.
+struct JacobianRow {
+    Vec3 grad_i{0, 0, 0};
+    float sum_grad2 = 0.0f;   // sum_j |grad_j C_i|^2 / m_j
+    PBF_HD void add_fluid(Vec3 gw, float mj, float inv_rest_density) {
+        Vec3 gj = (mj * inv_rest_density) * gw;
+        grad_i += gj;
+        sum_grad2 += dot(gj, gj) / mj;
+    }
+    PBF_HD void add_wall(Vec3 gw, float mb, float inv_rest_density) { grad_i += (mb * inv_rest_density) * gw; }
+    PBF_HD float diagonal(float mi) const { return dot(grad_i, grad_i) / mi + sum_grad2; }
+};
+
+// (M^-1 J^T a)_i rho0 = sum_j coef(j, r2, m_j, h_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
+// fluid pair's weight a_i m_j / m_i + a_j (+ the tensile term): the position correction (Macklin eq. 12-14,
+// a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum.
+template <class Policy, class Coef>
+PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid, const CellRanges& boundary,
+                                  const LevelRadii& radii, float h0, uint32_t i, Vec3 xi, float hi, float ai, float mi,
+                                  Coef&& coef) {
+    Vec3 sum{0, 0, 0};
+    for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, h0, i, xi,
+        [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (j == i) return;
+            float c = coef(j, r2, mj, hj);
+            sum += c * Policy::grad_W(r, r2, hi, hj);
+        },
+        [&](Vec3 r, float r2, float mb) { sum += (ai * mb / mi) * Policy::grad_W(r, r2, hi, h0); });
+    return sum;
+}
+
 // Density (eq. 1, 18) and lambda (eq. 4) of fluid particle i.
-template <bool Adaptive>
+template <class Policy>
 struct DensityLambda {
     GridGeometry grid;
     CellRanges fluid;
@@ -50,41 +98,30 @@ struct DensityLambda {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
-        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        float hi = Policy::radius(radii, cp.h0, mi);
         float rho = 0.0f;
-        Vec3 grad_i{0, 0, 0};
-        float sum_grad2 = 0.0f;  // sum_j |grad_j C_i|^2 / m_j
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
-            rho += mj * (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi));
-            if (j != i) {
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-                Vec3 gj = (mj * cp.inv_rest_density) * gw;
-                grad_i += gj;
-                sum_grad2 += dot(gj, gj) / mj;
-            }
-        });
-        if (boundary.start && near_wall(grid, xi, cp.h0)) {
-            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
-                float mb = boundary.pos[b].w;
-                rho += mb * (Adaptive ? poly6_sym(r2, hi, cp.h0) : poly6(r2, hi));
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
-                grad_i += (mb * cp.inv_rest_density) * gw;
+        JacobianRow row;
+        for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+            [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+                rho += mj * Policy::W(r2, hi, hj);
+                if (j != i) row.add_fluid(Policy::grad_W(r, r2, hi, hj), mj, cp.inv_rest_density);
+            },
+            [&](Vec3 r, float r2, float mb) {
+                rho += mb * Policy::W(r2, hi, cp.h0);
+                row.add_wall(Policy::grad_W(r, r2, hi, cp.h0), mb, cp.inv_rest_density);
             });
-        }
         float c = rho * cp.inv_rest_density - 1.0f;
         if (cp.unilateral && c < 0.0f) c = 0.0f;
-        float denom = dot(grad_i, grad_i) / mi + sum_grad2 + cp.relaxation;
+        float denom = row.diagonal(mi) + cp.relaxation;
         lambda[i] = denom > 0.0f ? -c / denom : 0.0f;
         density[i] = rho;
     }
 };
 
 // The two halves of A = J M^-1 J^T for the velocity projection's conjugate gradient solve
-// (solver_impl.inl: project_velocity): ApplyJT g_i = (M^-1 J^T p)_i, and ApplyJ q_i = (J g)_i together with
-// the Jacobi preconditioner diag_i = sum_k |grad_k C_i|^2 / m_k.
-template <bool Adaptive>
+// (pbf_constraints_launch.h: project_velocity): ApplyJT g_i = (M^-1 J^T p)_i, and ApplyJ q_i = (J g)_i together
+// with the Jacobi preconditioner diag_i = sum_k |grad_k C_i|^2 / m_k.
+template <class Policy>
 struct ApplyJT {
     GridGeometry grid;
     CellRanges fluid;
@@ -97,28 +134,15 @@ struct ApplyJT {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
-        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        float hi = Policy::radius(radii, cp.h0, mi);
         float li = p[i];
-        Vec3 dv{0, 0, 0};
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
-            if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
-            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-            dv += (li * mj / mi + p[j]) * gw;
-        });
-        if (boundary.start && near_wall(grid, xi, cp.h0)) {
-            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
-                float mb = boundary.pos[b].w;
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
-                dv += (li * mb / mi) * gw;
-            });
-        }
+        Vec3 dv = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
+                                         [&](uint32_t j, float, float mj, float) { return li * mj / mi + p[j]; });
         g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
     }
 };
 
-template <bool Adaptive>
+template <class Policy>
 struct ApplyJ {
     GridGeometry grid;
     CellRanges fluid;
@@ -132,39 +156,30 @@ struct ApplyJ {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
-        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        float hi = Policy::radius(radii, cp.h0, mi);
         Vec3 ui = xyz(u[i]);
         float div = 0.0f;
-        Vec3 grad_i{0, 0, 0};
-        float sum_grad2 = 0.0f;
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
-            if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
-            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-            div += mj * dot(ui - xyz(u[j]), gw);
-            if (diag) {
-                Vec3 gj = (mj * cp.inv_rest_density) * gw;
-                grad_i += gj;
-                sum_grad2 += dot(gj, gj) / mj;
-            }
-        });
-        if (boundary.start && near_wall(grid, xi, cp.h0)) {
-            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
-                float mb = boundary.pos[b].w;
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
+        JacobianRow row;
+        for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+            [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+                if (j == i) return;
+                Vec3 gw = Policy::grad_W(r, r2, hi, hj);
+                div += mj * dot(ui - xyz(u[j]), gw);
+                if (diag) row.add_fluid(gw, mj, cp.inv_rest_density);
+            },
+            [&](Vec3 r, float r2, float mb) {
+                Vec3 gw = Policy::grad_W(r, r2, hi, cp.h0);
                 div += mb * dot(ui, gw);
-                if (diag) grad_i += (mb * cp.inv_rest_density) * gw;
+                if (diag) row.add_wall(gw, mb, cp.inv_rest_density);
             });
-        }
         q[i] = div * cp.inv_rest_density;
-        if (diag) diag[i] = dot(grad_i, grad_i) / mi + sum_grad2;
+        if (diag) diag[i] = row.diagonal(mi);
     }
 };
 
 // Position correction dp_i (Macklin eq. 12-14, with the tensile term s_corr) applied to the
 // predicted position; writes into a second buffer (Jacobi iteration), clamps to the walls.
-template <bool Adaptive>
+template <class Policy>
 struct PositionCorrection {
     GridGeometry grid;
     CellRanges fluid;
@@ -177,45 +192,19 @@ struct PositionCorrection {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
-        float hi = Adaptive ? radii.radius_of_mass(mi) : cp.h0;
+        float hi = Policy::radius(radii, cp.h0, mi);
         float li = lambda[i];
-        Vec3 dp{0, 0, 0};
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, cp.h0, [&](uint32_t j, Vec3 r, float r2) {
-            if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : cp.h0;
+        Vec3 dp = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
+                                         [&](uint32_t j, float r2, float mj, float hj) {
             float s = 0.0f;
-            if (cp.scorr_k_lambda > 0.0f) {
-                // W(r) / W(dq h) with the pair's own kernel (eq. 19) at dq times the pair's mean radius, so a fine
-                // pair at its own spacing feels what a level-0 pair does at its spacing.
-                float ratio;
-                if (Adaptive) {
-                    float hm = cp.scorr_dq * 0.5f * (hi + hj);
-                    float wdq = poly6_sym(hm * hm, hi, hj);
-                    ratio = wdq > 0.0f ? poly6_sym(r2, hi, hj) / wdq : 0.0f;
-                } else {
-                    ratio = poly6(r2, hi) * cp.scorr_inv_wdq;
-                }
+            if (cp.scorr_k_lambda > 0.0f) {   // s_corr = -k (W(r) / W(dq h))^n, at the pair's radii (policy)
+                float ratio = Policy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq);
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
-                s = -cp.scorr_k_lambda * p;
-                if (Adaptive) {
-                    // lambda_ref (a unit violation's lambda) scales as h^5 (sum |grad C|^2 / m ~ m / h^8, m ~ h^3),
-                    // so the displacement s grad W / rho0 scales with h at every level, as it does at level 0.
-                    float q = 0.5f * (hi + hj) / cp.h0;
-                    s *= q * q * q * q * q;
-                }
+                s = Policy::tensile_scale(-cp.scorr_k_lambda * p, hi, hj, cp.h0);
             }
-            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-            dp += (li * mj / mi + lambda[j] + s) * gw;
+            return li * mj / mi + lambda[j] + s;
         });
-        if (boundary.start && near_wall(grid, xi, cp.h0)) {
-            for_each_neighbor(grid, boundary, xi, cp.h0, [&](uint32_t b, Vec3 r, float r2) {
-                float mb = boundary.pos[b].w;
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, cp.h0) : spiky_gradient(r, r2, hi);
-                dp += (li * mb / mi) * gw;
-            });
-        }
         Vec3 x = xi + cp.inv_rest_density * dp;
         // Collision with the walls: keep the particle inside the box on wall axes.
         for (int a = 0; a < 3; ++a) {
@@ -235,7 +224,7 @@ struct PositionCorrection {
 // Physical viscosity (Morris et al. 1997), pairwise so that momentum is conserved:
 //   dv_i = nu dt lap(v)_i,  lap(v)_i = 2 sum_j (m_j / rho0) (v_i - v_j) (x_ij . grad W_ij) / (|x_ij|^2 + eps)
 // (the same SPH Laplacian as the smoothing of eq. 13; explicit, stable for nu dt / d^2 below ~0.1).
-template <bool Adaptive>
+template <class Policy>
 struct ViscosityVorticity {
     GridGeometry grid;
     CellRanges fluid;
@@ -252,20 +241,18 @@ struct ViscosityVorticity {
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
-        float hi = Adaptive ? radii.radius_of_mass(pi.w) : h0;
+        float hi = Policy::radius(radii, h0, pi.w);
         Vec3 vi = xyz(vel[i]);
         Vec3 visc{0, 0, 0};
         Vec3 lap{0, 0, 0};
         Vec3 w{0, 0, 0};
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : h0;
             float vol = mj / density[j];
             Vec3 dv = xyz(vel[j]) - vi;
-            if (xsph > 0.0f) visc += (vol * (Adaptive ? poly6_sym(r2, hi, hj) : poly6(r2, hi))) * dv;
+            if (xsph > 0.0f) visc += (vol * Policy::W(r2, hi, hj)) * dv;
             if (want_vorticity || nu_dt > 0.0f) {
-                Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
+                Vec3 gw = Policy::grad_W(r, r2, hi, hj);
                 if (want_vorticity) w += vol * cross(gw, dv);
                 if (nu_dt > 0.0f) lap -= (2.0f * mj * inv_rest_density * dot(r, gw) / (r2 + 0.01f * hi * hj)) * dv;
             }
@@ -277,7 +264,7 @@ struct ViscosityVorticity {
 
 // Vorticity confinement force f_i = eps (N x omega_i), N = eta / |eta|, eta = grad |omega|
 // (Macklin eq. 16), added to the velocity over one step.
-template <bool Adaptive>
+template <class Policy>
 struct VorticityConfinement {
     GridGeometry grid;
     CellRanges fluid;
@@ -291,15 +278,12 @@ struct VorticityConfinement {
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
-        float hi = Adaptive ? radii.radius_of_mass(pi.w) : h0;
+        float hi = Policy::radius(radii, h0, pi.w);
         float wi = omega[i].w;
         Vec3 eta{0, 0, 0};
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : h0;
-            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
-            eta += ((mj / density[j]) * (omega[j].w - wi)) * gw;
+            eta += ((mj / density[j]) * (omega[j].w - wi)) * Policy::grad_W(r, r2, hi, hj);
         });
         float len = length(eta);
         if (len > 1e-20f) {

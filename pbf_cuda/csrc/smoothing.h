@@ -18,6 +18,7 @@
 #pragma once
 #include "common.h"
 #include "grid.h"
+#include "kernel_policy.h"
 #include "kernels.h"
 
 namespace pbf {
@@ -27,7 +28,7 @@ struct SmoothingFields {
     float* out[3];
 };
 
-template <bool Adaptive>
+template <class Policy>
 struct SmoothScalars {
     GridGeometry grid;
     CellRanges fluid;
@@ -41,16 +42,14 @@ struct SmoothScalars {
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
-        float hi = Adaptive ? radii.radius_of_mass(pi.w) : h0;
-        float beta_i = Adaptive ? beta0 * (hi * hi) / (h0 * h0) : beta0;
+        float hi = Policy::radius(radii, h0, pi.w);
+        float beta_i = Policy::area_scaled(beta0, hi, h0);     // beta_l = beta_0 (h_l / h0)^2
         float vi[3], dT[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) vi[k] = f.in[k] ? f.in[k][i] : 0.0f;
-        for_each_fluid_neighbor<Adaptive>(grid, fluid, i, xi, h0, [&](uint32_t j, Vec3 r, float r2) {
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
-            float mj = fluid.pos[j].w;
-            float hj = Adaptive ? radii.radius_of_mass(mj) : h0;
-            float beta_j = Adaptive ? beta0 * (hj * hj) / (h0 * h0) : beta0;
-            Vec3 gw = Adaptive ? spiky_gradient_sym(r, r2, hi, hj) : spiky_gradient(r, r2, hi);
+            float beta_j = Policy::area_scaled(beta0, hj, h0);
+            Vec3 gw = Policy::grad_W(r, r2, hi, hj);
             float c = 0.5f * (beta_i + beta_j) * mj * inv_rest_density * dot(r, gw) / (r2 + eps_rel * hi * hj);
             if (f.in[0]) dT[0] -= c * (vi[0] - f.in[0][j] + lapse * r.y);
             for (int k = 1; k < 3; ++k)

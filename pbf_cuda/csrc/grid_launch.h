@@ -1,0 +1,127 @@
+// Launch code of the neighbour search (Ihmsen et al. 2011; grid.h): the solver's grid, and every step the
+// sort of the particles by the cell of their predicted position x* with the cell ranges (uniform runs) or the
+// nested sub-cell ranges and largest radii (adaptive runs, section 5.2).
+#pragma once
+#include "grid.h"
+#include "solver_data.h"
+
+namespace pbf {
+namespace PBF_BACKEND_NS {
+
+// Sort key of particle i: its cell (uniform runs) or its nested sub-cell cell * 8 + sub (adaptive runs, grid.h).
+struct ComputeKeys {
+    GridGeometry g;
+    const Float4* pos;
+    uint32_t* keys;
+    bool nested;
+    PBF_HD void operator()(uint32_t i) const {
+        Vec3 x = xyz(pos[i]);
+        keys[i] = nested ? nested_key(g, x) : cell_key(g, x);
+    }
+};
+
+struct MarkCellRanges {
+    const uint32_t* keys;
+    uint32_t n;
+    uint32_t* start;
+    uint32_t* end;
+    PBF_HD void operator()(uint32_t i) const {
+        uint32_t k = keys[i];
+        if (i == 0 || keys[i - 1] != k) start[k] = i;
+        if (i == n - 1 || keys[i + 1] != k) end[k] = i + 1;
+    }
+};
+
+// Largest kernel radius per sub-cell (adaptive runs): thread s scans sub-cell s's range.
+struct SubCellRadius {
+    LevelRadii radii;
+    const Float4* pos;
+    const uint32_t* start;
+    const uint32_t* end;
+    float* radius;
+    PBF_HD void operator()(uint32_t s) const {
+        float h = 0.0f;
+        for (uint32_t j = start[s]; j < end[s]; ++j) h = fmaxf(h, radii.radius_of_mass(pos[j].w));
+        radius[s] = h;
+    }
+};
+
+// Per cell: the cell's particle range and largest radius from its eight sub-cells.
+struct CellFromSubCells {
+    const uint32_t* sub_start;
+    const uint32_t* sub_end;
+    const float* sub_radius;
+    uint32_t* start;
+    uint32_t* end;
+    float* radius;
+    PBF_HD void operator()(uint32_t c) const {
+        uint32_t b = 0, e = 0;
+        float h = 0.0f;
+        bool any = false;
+        for (uint32_t s = c * kSubCells; s < (c + 1) * kSubCells; ++s) {
+            if (sub_start[s] == sub_end[s]) continue;
+            if (!any) b = sub_start[s];
+            e = sub_end[s];
+            any = true;
+            h = fmaxf(h, sub_radius[s]);
+        }
+        start[c] = b;
+        end[c] = e;
+        radius[c] = h;
+    }
+};
+
+// The solver's neighbour grid: cells of at least h0; adaptive runs need a multiple of 3 cells on periodic
+// axes (the parallel merge colours cells modulo 3, adaptivity.h).
+inline GridGeometry make_solver_grid(const Params& p) {
+    bool periodic[3] = {p.periodic[0], p.periodic[1], p.periodic[2]};
+    GridGeometry grid = make_grid_geometry(p.domain, periodic, p.h0);
+    if (p.adaptive) {
+        for (int a = 0; a < 3; ++a) {
+            if (!grid.periodic[a]) continue;
+            int n = (grid.dims[a] / 3) * 3;
+            grid.dims[a] = n < 3 ? 3 : n;
+            grid.cell[a] = grid.domain[a] / grid.dims[a];
+            grid.inv_cell[a] = 1.0f / grid.cell[a];
+        }
+    }
+    return grid;
+}
+
+// Cell (and sub-cell) range arrays of the grid.
+inline void allocate_grid(SolverData& d) {
+    d.cell_start.resize(d.grid.num_cells());
+    d.cell_end.resize(d.grid.num_cells());
+    if (d.p.adaptive) {
+        d.sub_start.resize(std::size_t(d.grid.num_cells()) * kSubCells);
+        d.sub_end.resize(std::size_t(d.grid.num_cells()) * kSubCells);
+        d.sub_radius.resize(std::size_t(d.grid.num_cells()) * kSubCells);
+        d.cell_radius.resize(d.grid.num_cells());
+    }
+}
+
+// Sort every particle array by the cell of pred (the nested key in adaptive runs) and mark the ranges.
+inline void build_neighbor_grid(SolverData& d) {
+    const bool nested = d.p.adaptive;
+    parallel_for(d.n, ComputeKeys{d.grid, raw(d.pred), raw(d.keys), nested});
+    thrust::sequence(thrust::device, d.perm.begin(), d.perm.begin() + d.n);
+    thrust::sort_by_key(thrust::device, d.keys.begin(), d.keys.begin() + d.n, d.perm.begin());
+    d.permute_all(true);
+    if (!nested) {
+        thrust::fill(thrust::device, d.cell_start.begin(), d.cell_start.end(), 0u);
+        thrust::fill(thrust::device, d.cell_end.begin(), d.cell_end.end(), 0u);
+        parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.cell_start), raw(d.cell_end)});
+        return;
+    }
+    // Adaptive: sub-cell ranges from the nested keys, then each cell's range and largest radius from them.
+    thrust::fill(thrust::device, d.sub_start.begin(), d.sub_start.end(), 0u);
+    thrust::fill(thrust::device, d.sub_end.begin(), d.sub_end.end(), 0u);
+    parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.sub_start), raw(d.sub_end)});
+    parallel_for(d.sub_start.size(), SubCellRadius{d.radii, raw(d.pred), raw(d.sub_start), raw(d.sub_end),
+                                                   raw(d.sub_radius)});
+    parallel_for(d.cell_start.size(), CellFromSubCells{raw(d.sub_start), raw(d.sub_end), raw(d.sub_radius),
+                                                       raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
+}
+
+}  // namespace PBF_BACKEND_NS
+}  // namespace pbf

@@ -1,0 +1,68 @@
+// Kernel policies: what differs between uniform and adaptive runs (section 5.2), written once per kind of run.
+// Every neighbour kernel that works at mixed levels (pbf_constraints.h, smoothing.h) is a template over a
+// policy, and the solver picks the policy once per step (solver_impl.inl), so no kernel branches on it:
+//   radius(radii, h0, m)          kernel radius of a particle of mass m: h0, or h_l = h0 2^(-l/3), m = m0 2^(-l)
+//   W(r2, hi, hj), grad_W(...)    the pair's kernel: the plain kernel at h0, or the symmetric kernel of eq. 19
+//   area_scaled(x, h, h0)         x (h / h0)^2: a per-level quantity that scales with h^2 (smoothing's beta)
+//   tensile_ratio, tensile_scale  the s_corr term at the pair's own radii (PositionCorrection)
+//   for_each_neighbor             the 27-cell search at h0, or the nested sub-cell search of grid.h
+#pragma once
+#include "common.h"
+#include "grid.h"
+#include "kernels.h"
+
+namespace pbf {
+
+// Every particle is level 0: radius h0, plain kernels, the uniform grid search.
+struct UniformPolicy {
+    static PBF_HD float radius(const LevelRadii&, float h0, float) { return h0; }
+    static PBF_HD float W(float r2, float hi, float) { return poly6(r2, hi); }
+    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float) { return spiky_gradient(r, r2, hi); }
+    static PBF_HD float area_scaled(float x, float, float) { return x; }
+    // W(r) / W(dq h0), with 1 / W(dq h0) precomputed.
+    static PBF_HD float tensile_ratio(float r2, float hi, float, float, float inv_wdq) { return poly6(r2, hi) * inv_wdq; }
+    static PBF_HD float tensile_scale(float s, float, float, float) { return s; }
+    template <class F>
+    static PBF_HD void for_each_neighbor(const GridGeometry& g, const CellRanges& set, uint32_t, Vec3 q, float h0, F&& f) {
+        pbf::for_each_neighbor(g, set, q, h0, f);
+    }
+};
+
+// Particles of several levels: radius from the mass, symmetric kernels (eq. 19), the nested search.
+struct AdaptivePolicy {
+    static PBF_HD float radius(const LevelRadii& radii, float, float m) { return radii.radius_of_mass(m); }
+    static PBF_HD float W(float r2, float hi, float hj) { return poly6_sym(r2, hi, hj); }
+    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient_sym(r, r2, hi, hj); }
+    static PBF_HD float area_scaled(float x, float h, float h0) { return x * (h * h) / (h0 * h0); }
+    // W(r) / W(dq h) with the pair's own kernel (eq. 19) at dq times the pair's mean radius, so a fine pair at its
+    // own spacing feels what a level-0 pair does at its spacing.
+    static PBF_HD float tensile_ratio(float r2, float hi, float hj, float dq, float) {
+        float hm = dq * 0.5f * (hi + hj);
+        float wdq = poly6_sym(hm * hm, hi, hj);
+        return wdq > 0.0f ? poly6_sym(r2, hi, hj) / wdq : 0.0f;
+    }
+    // lambda_ref (a unit violation's lambda) scales as h^5 (sum |grad C|^2 / m ~ m / h^8, m ~ h^3), so the
+    // displacement s grad W / rho0 scales with h at every level, as it does at level 0.
+    static PBF_HD float tensile_scale(float s, float hi, float hj, float h0) {
+        float q = 0.5f * (hi + hj) / h0;
+        return s * (q * q * q * q * q);
+    }
+    template <class F>
+    static PBF_HD void for_each_neighbor(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q, float,
+                                         F&& f) {
+        for_each_neighbor_nested(g, set, i, q, f);
+    }
+};
+
+// f(j, r, r2, m_j, h_j) for the fluid neighbours j of particle i at q (i itself included, r2 = 0): the policy's
+// search, with each neighbour's mass and kernel radius.
+template <class Policy, class F>
+PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
+                                           float h0, uint32_t i, Vec3 q, F&& f) {
+    Policy::for_each_neighbor(g, fluid, i, q, h0, [&](uint32_t j, Vec3 r, float r2) {
+        float mj = fluid.pos[j].w;
+        f(j, r, r2, mj, Policy::radius(radii, h0, mj));
+    });
+}
+
+}  // namespace pbf

@@ -1,0 +1,166 @@
+// The dispatch layer of the two backends (Open3D / PyTorch style): how a kernel functor runs over n items,
+// the device vectors, and the phase timers. Everything above it (the phases' launch code, *_launch.h) is
+// written once against these few functions; the including backend file defines PBF_BACKEND_NS (and
+// PBF_BACKEND_CUDA for nvcc), and this header opens that namespace:
+//   parallel_for(n, f)          f(i) for i in [0, n): a Thrust for_each (a CUDA kernel, or an OpenMP loop)
+//   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
+//   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce)
+#pragma once
+#ifndef PBF_BACKEND_NS
+#error "launch.h belongs to a backend: backend_cpu.cpp or backend_cuda.cu define PBF_BACKEND_NS and include solver_impl.inl"
+#endif
+#include <thrust/copy.h>
+#include <thrust/device_vector.h>
+#include <thrust/execution_policy.h>
+#include <thrust/fill.h>
+#include <thrust/for_each.h>
+#include <thrust/functional.h>
+#include <thrust/gather.h>
+#include <thrust/iterator/counting_iterator.h>
+#include <thrust/scan.h>
+#include <thrust/sequence.h>
+#include <thrust/sort.h>
+#include <thrust/transform_reduce.h>
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "common.h"
+#include "solver_api.h"
+
+#ifdef PBF_BACKEND_CUDA
+#include <cuda_runtime.h>
+#endif
+
+namespace pbf {
+namespace PBF_BACKEND_NS {
+
+#ifdef THRUST_CUB_WRAPPED_NAMESPACE
+// Each backend wraps Thrust/CUB in its own namespace (set by CMake) so the two never collide.
+namespace thrust = ::THRUST_CUB_WRAPPED_NAMESPACE::thrust;
+#endif
+
+template <class T>
+using dvec = thrust::device_vector<T>;
+template <class T>
+T* raw(dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
+template <class T>
+const T* raw(const dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
+
+template <class F>
+void parallel_for(std::size_t n, const F& f) {
+    if (n == 0) return;
+    thrust::for_each(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f);
+}
+
+// op-reduction of f(i) over i in [0, n), starting from init.
+template <class T, class F, class Op>
+T reduce_over(std::size_t n, const F& f, T init, Op op) {
+    return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+                                    thrust::counting_iterator<uint32_t>(uint32_t(n)), f, init, op);
+}
+
+// f(t, team) for t in [0, n): one team per item (common.h), a warp on the GPU, a thread on the CPU.
+#ifdef PBF_BACKEND_CUDA
+template <class F>
+__global__ void team_kernel(uint32_t n, F f) {
+    uint32_t t = (blockIdx.x * blockDim.x + threadIdx.x) / WarpTeam::kSize;
+    if (t >= n) return;  // whole warps leave together: blockDim is a multiple of the warp size
+    f(t, WarpTeam{threadIdx.x % WarpTeam::kSize});
+}
+
+template <class F>
+void parallel_for_teams(std::size_t n, const F& f) {
+    if (n == 0) return;
+    const unsigned block = 128;
+    std::size_t threads = n * WarpTeam::kSize;
+    team_kernel<<<unsigned((threads + block - 1) / block), block>>>(uint32_t(n), f);
+    cudaError_t err = cudaGetLastError();
+    if (err != cudaSuccess) throw std::runtime_error(std::string("team kernel launch: ") + cudaGetErrorString(err));
+}
+#else
+template <class F>
+struct AsSerialTeam {
+    F f;
+    void operator()(uint32_t t) const { f(t, SerialTeam{}); }
+};
+
+template <class F>
+void parallel_for_teams(std::size_t n, const F& f) {
+    parallel_for(n, AsSerialTeam<F>{f});
+}
+#endif
+
+// ---- phase timers: CUDA events on the GPU, steady clock on the CPU ------------------------------
+#ifdef PBF_BACKEND_CUDA
+class PhaseClock {
+public:
+    ~PhaseClock() {
+        for (auto& e : events_) cudaEventDestroy(e);
+    }
+    void begin(int p) { open_[p] = record(); }
+    void end(int p) {
+        pairs_.push_back({p, open_[p], record()});
+        ran_[p] = true;
+    }
+    // Called once per step after the device work was issued: waits and accumulates.
+    void collect(PhaseTotals& totals) {
+        if (!pairs_.empty()) cudaEventSynchronize(events_[pairs_.back().stop]);
+        for (auto& pr : pairs_) {
+            float ms = 0.0f;
+            cudaEventElapsedTime(&ms, events_[pr.start], events_[pr.stop]);
+            totals.total_ms[pr.phase] += ms;
+        }
+        for (int p = 0; p < kNumPhases; ++p)
+            if (ran_[p]) totals.count[p] += 1, ran_[p] = false;
+        pairs_.clear();
+        used_ = 0;
+    }
+
+private:
+    struct Pair { int phase, start, stop; };
+    int record() {
+        if (used_ == events_.size()) {
+            cudaEvent_t e;
+            cudaEventCreate(&e);
+            events_.push_back(e);
+        }
+        cudaEventRecord(events_[used_]);
+        return int(used_++);
+    }
+    std::vector<cudaEvent_t> events_;
+    std::size_t used_ = 0;
+    std::vector<Pair> pairs_;
+    int open_[kNumPhases] = {};
+    bool ran_[kNumPhases] = {};
+};
+#else
+class PhaseClock {
+public:
+    void begin(int p) { open_[p] = std::chrono::steady_clock::now(); }
+    void end(int p) {
+        pending_[p] += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - open_[p]).count();
+        ran_[p] = true;
+    }
+    void collect(PhaseTotals& totals) {
+        for (int p = 0; p < kNumPhases; ++p) {
+            totals.total_ms[p] += pending_[p];
+            pending_[p] = 0.0;
+            if (ran_[p]) totals.count[p] += 1, ran_[p] = false;
+        }
+    }
+
+private:
+    std::chrono::steady_clock::time_point open_[kNumPhases];
+    double pending_[kNumPhases] = {};
+    bool ran_[kNumPhases] = {};
+};
+#endif
+
+}  // namespace PBF_BACKEND_NS
+}  // namespace pbf

@@ -1,0 +1,239 @@
+// Launch code of the PBF phase (Macklin & Mueller 2013, Algorithm 1; paper eq. 1-4, 18; pbf_constraints.h):
+// prediction, the density constraint's Jacobi iterations, the velocity update, XSPH / viscosity / vorticity
+// confinement, and the divergence-free velocity projection of closed domains.
+//
+// Two ways to keep the fluid incompressible (Params::velocity_projection):
+//  - position projection (Macklin & Mueller): the velocity is (x* - x) / dt after the density
+//    constraint moved x*. Right for free surfaces (unilateral constraint), but every density error
+//    left by the few Jacobi iterations comes back as velocity in the next step: it adds energy.
+//  - velocity projection (closed domains, the atmosphere): the velocity is projected onto J v = 0
+//    (divergence-free, pbf_constraints.h) after all forces, and the density constraint only moves
+//    positions. The projection is M-orthogonal, so it removes only the compressing part of the flow
+//    and never adds kinetic energy; the density constraint is bilateral, so heated air cannot leave a
+//    rarefied layer behind.
+#pragma once
+#include "kernels.h"
+#include "pbf_constraints.h"
+#include "solver_data.h"
+
+namespace pbf {
+namespace PBF_BACKEND_NS {
+
+struct Predict {
+    Float4* vel;
+    const Float4* pos;
+    Float4* pred;
+    Vec3 gravity;
+    float dt;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i];
+        Vec3 u = xyz(v) + dt * gravity;
+        vel[i] = make_float4(u, v.w);
+        Float4 p = pos[i];
+        pred[i] = make_float4(xyz(p) + dt * u, p.w);
+    }
+};
+
+struct UpdateVelocity {
+    const Float4* pos;
+    const Float4* pred;
+    Float4* vel;
+    float inv_dt;
+    PBF_HD void operator()(uint32_t i) const {
+        vel[i] = make_float4(inv_dt * (xyz(pred[i]) - xyz(pos[i])), 0.0f);
+    }
+};
+
+// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner).
+struct CgStart {
+    float* r;
+    const float* diag;
+    float* p;
+    PBF_HD void operator()(uint32_t i) const {
+        r[i] = -r[i];
+        p[i] = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
+    }
+};
+struct CgDot {
+    const float* a;
+    const float* b;
+    PBF_HD double operator()(uint32_t i) const { return double(a[i]) * double(b[i]); }
+};
+// r . D^-1 r (inv_diag set), or p . D p (diag_mul set).
+struct CgPrecDot {
+    const float* r;
+    const float* inv_diag;
+    const float* diag_mul;
+    PBF_HD double operator()(uint32_t i) const {
+        if (diag_mul) return double(r[i]) * r[i] * diag_mul[i];
+        return inv_diag[i] > 0.0f ? double(r[i]) * r[i] / inv_diag[i] : 0.0;
+    }
+};
+struct CgUpdate {
+    float alpha;
+    const Float4* g;
+    const float* q;
+    const float* p;
+    Float4* v;
+    float* r;
+    float* mu;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 a = v[i], b = g[i];
+        v[i] = Float4{a.x + alpha * b.x, a.y + alpha * b.y, a.z + alpha * b.z, a.w};
+        r[i] -= alpha * q[i];
+        mu[i] += alpha * p[i];
+    }
+};
+struct CgDirection {
+    float beta;
+    const float* r;
+    const float* diag;
+    float* p;
+    PBF_HD void operator()(uint32_t i) const {
+        float z = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
+        p[i] = z + beta * p[i];
+    }
+};
+
+struct AddVelocity {
+    const Float4* dv;
+    Float4* vel;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i], d = dv[i];
+        vel[i] = Float4{v.x + d.x, v.y + d.y, v.z + d.z, v.w};
+    }
+};
+
+struct AddAcceleration {
+    Float4* vel;
+    Vec3 dv;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 v = vel[i];
+        vel[i] = Float4{v.x + dv.x, v.y + dv.y, v.z + dv.z, v.w};
+    }
+};
+
+// The constraint's constants (s_corr's reference W(dq h0) once per run).
+inline ConstraintParams make_constraint_params(const Params& p) {
+    ConstraintParams cp{};
+    cp.rest_density = p.rest_density;
+    cp.inv_rest_density = 1.0f / p.rest_density;
+    cp.relaxation = p.relaxation;
+    cp.h0 = p.h0;
+    cp.unilateral = p.unilateral;
+    cp.scorr_k_lambda = p.scorr_k * p.lambda_ref;
+    cp.scorr_n = p.scorr_n;
+    float wdq = poly6(p.scorr_dq * p.h0 * p.scorr_dq * p.h0, p.h0);
+    cp.scorr_inv_wdq = wdq > 0.0f ? 1.0f / wdq : 0.0f;
+    cp.scorr_dq = p.scorr_dq;
+    return cp;
+}
+
+inline Vec3 gravity_of(const Params& p) { return Vec3{p.gravity[0], p.gravity[1], p.gravity[2]}; }
+
+// x* = x + dt (v + dt g); with the velocity projection gravity is added after the forces (project_velocity).
+inline void predict_positions(SolverData& d) {
+    const Vec3 g = d.p.velocity_projection ? Vec3{0, 0, 0} : gravity_of(d.p);
+    parallel_for(d.n, Predict{raw(d.vel), raw(d.pos), raw(d.pred), g, d.p.dt});
+}
+
+// Density constraint iterations on the predicted positions (eq. 1-4, 18).
+template <class Policy>
+void solve_density(SolverData& d, const CellRanges& walls) {
+    for (int it = 0; it < d.p.iterations; ++it) {
+        CellRanges fl = d.fluid_ranges(d.pred);
+        parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
+        parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
+        d.pred.swap(d.pos_tmp);
+    }
+}
+
+// v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).
+inline void update_velocity(SolverData& d) {
+    if (!d.p.velocity_projection) parallel_for(d.n, UpdateVelocity{raw(d.pos), raw(d.pred), raw(d.vel), 1.0f / d.p.dt});
+}
+
+// XSPH viscosity, physical viscosity and vorticity confinement (Macklin eq. 15-17), where switched on.
+template <class Policy>
+void viscosity_vorticity(SolverData& d) {
+    const Params& p = d.p;
+    if (!(p.xsph > 0.0f || p.vorticity > 0.0f || p.viscosity > 0.0f)) return;
+    const float dt = p.dt;
+    CellRanges fl = d.fluid_ranges(d.pred);
+    bool vort = p.vorticity > 0.0f;
+    parallel_for(d.n, ViscosityVorticity<Policy>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
+                                                 d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
+                                                 raw(d.vel_tmp), vort ? raw(d.omega) : nullptr});
+    d.vel.swap(d.vel_tmp);
+    if (vort)
+        parallel_for(d.n, VorticityConfinement<Policy>{d.grid, fl, d.radii, p.h0, p.vorticity, dt, raw(d.density),
+                                                       raw(d.omega), raw(d.vel)});
+}
+
+// Divergence-free velocity projection at the predicted positions (pbf_constraints.h): preconditioned
+// conjugate gradients on A mu = -J v, A = J M^-1 J^T, updating v += alpha M^-1 J^T p as it goes.
+// The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
+// Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
+// v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
+template <class Policy>
+void solve_divergence(SolverData& d, const CellRanges& bnd) {
+    CellRanges fl = d.fluid_ranges(d.pred);
+    const std::size_t n = d.n;
+    const GridGeometry& grid = d.grid;
+    const LevelRadii& radii = d.radii;
+    const ConstraintParams& cp = d.cp;
+    float* r = raw(d.cg_r);
+    float* p = raw(d.cg_p);
+    float* q = raw(d.cg_q);
+    float* diag = raw(d.cg_diag);
+    Float4* g = raw(d.vel_tmp);
+    Float4* v = raw(d.vel);
+    float* mu = raw(d.cg_mu);
+    parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, mu, g});
+    parallel_for(n, AddVelocity{g, v});
+    // r = -J v, z = r / diag, p = z
+    parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, v, r, diag});
+    parallel_for(n, CgStart{r, diag, p});
+    double rz = reduce_over(n, CgDot{r, p}, 0.0, thrust::plus<double>());
+    // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
+    // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
+    const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
+    auto converged = [&]() {
+        if (!(tol2 > 0.0)) return false;
+        double rr = reduce_over(n, CgDot{r, r}, 0.0, thrust::plus<double>());
+        return rr <= tol2;
+    };
+    for (int it = 0; it < d.p.divergence_iterations && rz > 0.0 && !converged(); ++it) {
+        parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, p, g});           // g = M^-1 J^T p
+        parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, g, q, nullptr});   // q = A p
+        double pq = reduce_over(n, CgDot{p, q}, 0.0, thrust::plus<double>());
+        // A direction whose Rayleigh quotient pq / p.D.p is tiny lies in the near-null space of A (modes the
+        // SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
+        // be huge and arbitrary. Stop there.
+        double pdp = reduce_over(n, CgPrecDot{p, nullptr, diag}, 0.0, thrust::plus<double>());
+        if (!(pq > 1e-5 * pdp)) break;
+        float alpha = float(rz / pq);
+        // v += alpha g; r -= alpha q; the new z = r / diag is formed inside the next dot product
+        parallel_for(n, CgUpdate{alpha, g, q, p, v, r, mu});
+        if (it + 1 == d.p.divergence_iterations) break;
+        double rz_new = reduce_over(n, CgPrecDot{r, diag, nullptr}, 0.0, thrust::plus<double>());
+        float beta = float(rz_new / rz);
+        rz = rz_new;
+        parallel_for(n, CgDirection{beta, r, diag, p});                               // p = z + beta p
+    }
+}
+
+// The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.
+template <class Policy>
+void project_velocity(SolverData& d, const CellRanges& walls) {
+    if (!d.p.velocity_projection) return;
+    d.clock.begin(kPhaseSolver);
+    const Vec3 gravity = gravity_of(d.p);
+    if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
+        parallel_for(d.n, AddAcceleration{raw(d.vel), d.p.dt * gravity});
+    solve_divergence<Policy>(d, walls);
+    d.clock.end(kPhaseSolver);
+}
+
+}  // namespace PBF_BACKEND_NS
+}  // namespace pbf

@@ -1,0 +1,39 @@
+// Launch code of the temperature smoothing (section 4.1, eq. 12-17; smoothing.h): one Jacobi pass over the
+// smoothed fields (temperature, optionally vapor and cloud) at the predicted positions.
+#pragma once
+#include "diagnostics_launch.h"
+#include "smoothing.h"
+#include "solver_data.h"
+
+namespace pbf {
+namespace PBF_BACKEND_NS {
+
+// The pass runs with thermodynamics, kappa > 0 and at least one field to smooth.
+inline bool smoothing_active(const Params& p) {
+    return p.thermodynamics && p.kappa > 0.0f && (p.smooth_fields[0] || p.smooth_fields[1] || p.smooth_fields[2]);
+}
+
+// Smooths the fields and returns the change of sum m T it made (kg K; 0 up to rounding: the pairwise form
+// conserves it), for the step budget.
+template <class Policy>
+double smooth_fields(SolverData& d) {
+    if (!d.smoothing) return 0.0;
+    BudgetSums before = reduce_budget(d, d.pred, false, false);
+    d.clock.begin(kPhaseSmoothing);
+    dvec<float>* fields[3] = {&d.temperature, &d.vapor, &d.cloud};
+    SmoothingFields sf{};
+    for (int k = 0; k < 3; ++k) {
+        if (!d.p.smooth_fields[k]) continue;
+        sf.in[k] = raw(*fields[k]);
+        sf.out[k] = raw(d.smooth_out[k]);
+    }
+    parallel_for(d.n, SmoothScalars<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, d.p.h0, d.cp.inv_rest_density,
+                                            d.p.smoothing_beta, d.p.smoothing_epsilon, d.p.lapse_rate, sf});
+    for (int k = 0; k < 3; ++k)
+        if (d.p.smooth_fields[k]) fields[k]->swap(d.smooth_out[k]);
+    d.clock.end(kPhaseSmoothing);
+    return reduce_budget(d, d.pred, false, false).mT - before.mT;
+}
+
+}  // namespace PBF_BACKEND_NS
+}  // namespace pbf
