@@ -114,7 +114,8 @@ def test_largest_stable_dt_stops_at_the_first_failure():
 
 # ---- a study interrupted, then resumed ---------------------------------------------------------------
 TINY = dataclasses.replace(SCALES["smoke"], stress_particles=3000, stress_steps=6,
-                           stress_dt=(1.0, 2.0, 150.0), stress_iterations=(1, 2), stress_alpha_dt=(1.0,))
+                           stress_dt=(1.0, 2.0, 150.0), stress_iterations=(1, 2), stress_alpha_dt=(1.0,),
+                           stress_map_dt=())
 
 
 def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, monkeypatch):
@@ -165,6 +166,37 @@ def test_stress_cases_change_one_parameter_each():
             assert scene.atmosphere.heating_rate == value <= stress.MAX_HEATING_RATE
     heating = [v for p, v, _ in cases if p == "heating_rate"]
     assert heating == sorted(set(heating)) and heating[0] == base.atmosphere.heating_rate
+
+
+def test_stress_maps_vary_dt_and_one_other_parameter():
+    base = scale_scene(load_scene("growing"), 3000)
+    scale = SCALES["smoke"]
+    cases = [(p, v, sc) for p, v, sc in stress.stress_cases(base, scale) if p.startswith("dt x ")]
+    per_dt = len(scale.stress_iterations) + len(stress.MAP_HEATING_FACTORS)
+    assert len(cases) == len(scale.stress_map_dt) * per_dt
+    for parameter, value, scene in cases:
+        assert scene.time.dt == value
+        if parameter == "dt x iterations":
+            assert scene.atmosphere == base.atmosphere and scene.pbf.iterations in scale.stress_iterations
+        else:
+            assert scene.pbf == base.pbf
+            factor = scene.atmosphere.heating_rate / base.atmosphere.heating_rate
+            assert min(abs(factor - f) for f in stress.MAP_HEATING_FACTORS) < 1e-9
+
+
+def test_usable_is_stable_and_accurate():
+    frame = pd.DataFrame({"parameter": "dt", "value": [1.0, 2.0, 4.0, 8.0, 16.0],
+                          "stable": [True, True, True, True, False],
+                          "density_error_mean": [0.001, 0.002, 0.004, 0.5, 0.9],
+                          "density_error_max": [0.002, 0.009, 0.02, 0.6, None],
+                          "energy_jump": [1.0, 1.1, 1.2, 1.3, 9.0]})
+    usable = stress.usable_mask(frame)
+    assert usable.tolist() == [True, True, False, False, False]   # 4 s: its worst step exceeds 1%
+    jumpy = frame.assign(energy_jump=[1.0, 3.0, 1.0, 1.0, 1.0])
+    assert stress.usable_mask(jumpy).tolist() == [True, False, False, False, False]
+    out = stress.largest_stable_dt(frame.assign(usable=usable))
+    assert (out["largest_usable_dt"], out["smallest_unusable_dt"]) == (2.0, 4.0)
+    assert (out["largest_stable_dt"], out["smallest_unstable_dt"]) == (8.0, 16.0)
 
 
 def test_dask_workers_run_missing_specs_and_cached_ones_stay_home(tmp_path):
