@@ -413,6 +413,42 @@ def _side_by_side(panels, scene, out_png, window_size, threshold, point_size, fa
     return _finish(plotter, out_png)
 
 
+def render_animation(frames: Sequence[tuple[float, Mapping]], scene, out_gif, out_strip=None,
+                     window_size: Sequence[int] = (800, 600), strip_width: int = 360,
+                     frame_ms: int = 700, threshold: float = CLOUD_THRESHOLD) -> Path:
+    """The clouds developing: one particle render per (time s, state) frame, written as a looping GIF
+    (`frame_ms` per frame, the last held three times as long) and, with `out_strip`, as one PNG strip
+    of the frames side by side, each `strip_width` px wide, labelled with its time."""
+    from PIL import Image
+    import tempfile
+    if not frames:
+        raise RenderUnavailable("no stored states to animate")
+    out_gif = Path(out_gif)
+    images = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (time_s, state) in enumerate(frames):
+            png = Path(tmp) / f"frame_{i:03d}.png"
+            render_particles(state, scene, png, color_by="cloud", window_size=window_size, threshold=threshold,
+                             title=f"{scene.name}, t = {time_s:g} s")
+            with Image.open(png) as im:
+                images.append(im.convert("RGB"))
+    out_gif.parent.mkdir(parents=True, exist_ok=True)
+    palette = [im.quantize(colors=128, method=Image.Quantize.MEDIANCUT) for im in images]
+    durations = [frame_ms] * (len(palette) - 1) + [3 * frame_ms]
+    from pbf_cuda.files import atomic_path
+    with atomic_path(out_gif) as tmp_gif:
+        palette[0].save(tmp_gif, format="GIF", save_all=True, append_images=palette[1:], duration=durations,
+                        loop=0)
+    if out_strip is not None:
+        height = int(round(strip_width * images[0].height / images[0].width))
+        strip = Image.new("RGB", (strip_width * len(images), height), "white")
+        for i, im in enumerate(images):
+            strip.paste(im.resize((strip_width, height), Image.Resampling.LANCZOS), (i * strip_width, 0))
+        with atomic_path(Path(out_strip)) as tmp_png:
+            strip.save(tmp_png, format="PNG")
+    return out_gif
+
+
 # ------------------------------------------------------------------------------------------
 # report glue
 # ------------------------------------------------------------------------------------------
@@ -449,4 +485,5 @@ def render_or_note(render: Callable[..., Path], out_png, *args, **kwargs) -> Pat
     return Path(path)
 
 
-_PNG_POSITION = {render_particles: 2, render_volume: 2, render_slab_comparison: 3, render_shape_energy: 2}
+_PNG_POSITION = {render_particles: 2, render_volume: 2, render_slab_comparison: 3, render_shape_energy: 2,
+                 render_animation: 2}

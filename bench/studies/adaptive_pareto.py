@@ -52,7 +52,7 @@ from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt
                               SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_front
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_steps
 from pbf_cuda.scene import Scene, load_scene
 
@@ -330,5 +330,6 @@ def adaptive_pareto_command(
 
 
 register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
+               report=(ReportSection("adaptive_pareto", "Adaptive mode at equal error", "bench.report.build:_adaptive_pareto", 70),),
                outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_verdict.json"),
                command=adaptive_pareto_command))

@@ -25,7 +25,7 @@ from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt
                               SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
 from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 
@@ -66,6 +66,10 @@ def scene_pair(name: str) -> tuple[Scene, Scene]:
     return base, adaptive
 
 
+ANIMATION_FRAMES = 8
+"""Stored states of the seed-0 non-adaptive run (the report's animation of the clouds developing)."""
+
+
 def compare_specs(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[str, int, runs.RunSpec]]:
     """(mode, seed, spec) for every mode and seed."""
     if seeds < MIN_SEEDS:
@@ -75,7 +79,8 @@ def compare_specs(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[
     out = []
     for seed in range(seeds):
         out.append(("non-adaptive", seed, runs.RunSpec("particles", base, backend=ctx.backend, seed=seed,
-                                                        diagnostics_resolution=shape)))
+                                                        diagnostics_resolution=shape,
+                                                        keep_snapshots=ANIMATION_FRAMES if seed == 0 else 3)))
         out.append(("adaptive", seed, runs.RunSpec("particles", adaptive, backend=ctx.backend, seed=seed,
                                                     diagnostics_resolution=shape)))
         out.append(("grid", seed, runs.RunSpec("grid", base, seed=seed, resolution=shape)))
@@ -139,6 +144,8 @@ def compare_command(
 
 
 register(Study("compare", order=30, run=lambda ctx, scene: run_compare(ctx, scene), sections=("adaptive", "compare"),
+                report=(ReportSection("adaptive", "Adaptive against non-adaptive", "bench.report.build:_adaptive", 40),
+                        ReportSection("compare", "Particles against the grid baseline", "bench.report.build:_compare_and_cycling", 50),),
                 outputs=("compare_timeseries.csv", "compare_profiles.csv", "compare_runs.csv"),
                 scale={"seeds": {"smoke": 5, "cpu": 5, "gpu": 5}},       # noise seeds per mode
                 command=compare_command))

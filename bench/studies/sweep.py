@@ -35,7 +35,7 @@ from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt
 from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -196,6 +196,7 @@ def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scal
 
 
 register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
+                report=(ReportSection("sweep", "Run time against error", "bench.report.build:_sweep", 60),),
                 outputs=("sweep.csv", "sweep_verdict.json"),
                 scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
                        # threshold alpha at the middle spacing; grid cells along the longest axis
