@@ -464,3 +464,22 @@ def test_report_sections_come_from_the_study_registry(tmp_path):
 
 def _toy_builder(inp, sec, env):
     sec.add("text", "toy data: 42")
+
+
+def test_animation_is_a_looping_gif_and_a_strip_of_every_frame(tmp_path):
+    _rendering()
+    from PIL import Image
+    from pbf_cuda.scene import load_scene
+    slab = load_scene("smoothing_slab", **{"particles.spacing": 100.0, "domain.size": [3200.0, 3200.0, 600.0]})
+    grow = _slab_state(slab, False)
+    frames = [(t, dict(grow, cloud=grow["cloud"] * t / 200.0)) for t in (0.0, 100.0, 200.0)]   # cloud grows
+    gif = render.render_animation(frames, slab, tmp_path / "a.gif", out_strip=tmp_path / "s.png",
+                                  window_size=(160, 120), strip_width=80)
+    with Image.open(gif) as im:
+        assert im.n_frames == 3 and im.info.get("loop") == 0
+    with Image.open(tmp_path / "s.png") as strip:
+        assert strip.size == (3 * 80, 60)
+        pixels = np.asarray(strip.convert("L"), dtype=float)
+    # the first frame (no cloud) differs from the last (cloud)
+    assert np.abs(pixels[:, :80] - pixels[:, 160:]).mean() > 0.5
+    assert render.render_or_note(render.render_animation, tmp_path / "b.gif", [], slab) is None
