@@ -30,8 +30,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
                               parse_overrides, refusals, scene_arg, study_context)
 from bench.grid_scaling import grid_scaling_command
 
@@ -85,7 +85,7 @@ def run(
         "--record-steps/--no-record-steps", help="stats() after every step (default: on for plain-fluid scenes)")] = None,
     cells_per_spacing: Annotated[float, typer.Option(min=0.05, max=64.0, help="grid: cells per particle spacing")] = 1.0,
     runs_root: RunsRootOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
 ) -> None:
     """One run of a scene through the run cache (a cached run returns at once).
 
@@ -165,7 +165,7 @@ def demo(
     bad = [s for s in chosen if s not in studies]
     if bad:
         raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(studies)}", param_hint="'--only'")
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             index, status = run_demo(ctx, only=chosen)
     failed = [name for name, st in status.items() if not st["ok"]]

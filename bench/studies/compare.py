@@ -21,8 +21,8 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
 from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
@@ -129,11 +129,11 @@ def compare_command(
     seeds: Annotated[Optional[int], typer.Option(min=5, max=1000, help="noise seeds per mode (>= 5)")] = None,
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
 ) -> None:
     """Particles (non-adaptive and adaptive) against the grid baseline over >= 5 seeds."""
     scene_arg(scene)
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         try:
             with refusals():
                 frames = run_compare(ctx, scene, seeds)

@@ -32,8 +32,8 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -164,11 +164,11 @@ STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)                               
 
 def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
                    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-                   quiet: QuietOpt = False) -> None:
+                   quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
     """Stability map: dt, iterations, heating rate and alpha*dt, dt x iterations and dt x heating rate; the
     largest stable and the largest usable dt."""
     import json
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_stress(ctx)
     typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))

@@ -30,8 +30,8 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
@@ -183,10 +183,10 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
 
 def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
                   backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-                  quiet: QuietOpt = False) -> None:
+                  quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
     """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
     import json
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_sweep(ctx)
     typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
