@@ -586,7 +586,7 @@ def adaptive_tests(particles: pd.DataFrame, runs_df: pd.DataFrame | None = None)
         if name not in adapt:
             continue
         a, b = mean_ci(fixed[name]), mean_ci(adapt[name])
-        t, p = welch(fixed[name], adapt[name])
+        t, p = welch(adapt[name], fixed[name])    # t > 0: adaptive larger
         rows.append({"quantity": name, "non-adaptive": format_ci(a), "adaptive": format_ci(b),
                      "seeds": f"{a.n} / {b.n}", "adaptive - non-adaptive": b.mean - a.mean, "Welch t": t,
                      "p": p, "significant (5%)": "–" if math.isnan(p) else ("yes" if p < 0.05 else "no")})
