@@ -90,6 +90,13 @@ def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Pat
     else:
         runs.atomic_write_text(render.note_path(gif), f"the run {res_fixed.path.name} stored no states\n")
         done["clouds_animation.gif"] = None
+    strip = out / "clouds_strip.png"
+    if done["clouds_animation.gif"] is None:      # the strip says why, as the animation does
+        runs.atomic_write_text(render.note_path(strip), render.note_path(gif).read_text())
+        strip.unlink(missing_ok=True)
+    else:
+        render.note_path(strip).unlink(missing_ok=True)
+    done["clouds_strip.png"] = strip if strip.is_file() else None
     done["figure3_shape_energy.png"] = _draw(render.render_shape_energy, out / "figure3_shape_energy.png",
                                              res_adaptive, adaptive.scene)
     for name, path in done.items():
