@@ -957,7 +957,7 @@ def build_report(out_dir) -> Path:
             else:
                 owned.load()(inp, sec, env)
         except Exception as exc:  # a broken input must not hide the other sections
-            sec.blocks.append(Block("note", f"could not build this section from {inp.data}: "
+            sec.blocks.append(Block("note", f"could not build this section from data/: "
                                             f"{type(exc).__name__}: {exc}", level="error"))
         sections.append(sec)
     template = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
