@@ -85,7 +85,7 @@ def run(
         "--record-steps/--no-record-steps", help="stats() after every step (default: on for plain-fluid scenes)")] = None,
     cells_per_spacing: Annotated[float, typer.Option(min=0.05, max=64.0, help="grid: cells per particle spacing")] = 1.0,
     runs_root: RunsRootOpt = None,
-    quiet: QuietOpt = False, gpus: GpusOpt = None,
+    quiet: QuietOpt = False,
 ) -> None:
     """One run of a scene through the run cache (a cached run returns at once).
 
@@ -151,7 +151,7 @@ def report(out: OutOpt = DEFAULT_OUT) -> None:
 def demo(
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
     only: Annotated[Optional[str], typer.Option(
         help="comma-separated subset of the demo's studies (those of bench.studies.registry; an unknown "
              "name lists them)")] = None,

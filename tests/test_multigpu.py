@@ -49,7 +49,7 @@ def test_devices_follow_cuda_visible_devices(monkeypatch):
     ("0,1", ["--gpus", "1", "--workers", "2"], "leave --workers out"),
     ("0,1", ["--gpus", "1", "--backend", "cpu"], "--backend cpu contradicts it"),
 ])
-@pytest.mark.parametrize("command", ["sweep", "stress", "compare"])
+@pytest.mark.parametrize("command", ["sweep", "stress", "compare", "demo"])
 def test_gpus_errors_exit_2_naming_the_option(command, env, args, expected, monkeypatch, tmp_path):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", env)
     monkeypatch.setitem(sys.modules, "dask_cuda", None)          # not installed (an import raises)
