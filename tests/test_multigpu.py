@@ -40,16 +40,15 @@ def test_devices_follow_cuda_visible_devices(monkeypatch):
         select_gpus("all", visible_gpus())
 
 
-@pytest.mark.parametrize("env,args,expected", [
-    ("", ["--gpus", "all"], "no CUDA GPU is visible"),
-    ("0,1", ["--gpus", "3"], "only 2 GPU(s) visible"),
-    ("0,1", ["--gpus", "2"], "needs dask-cuda, which is not installed: pip install 'cloudpbf[multigpu]'"),
-    ("0,1", ["--gpus", "zero"], "expected 'all' or a number of GPUs"),
-    ("0,1", ["--gpus", "1", "--scheduler", "inline"], "cannot be combined with --scheduler"),
-    ("0,1", ["--gpus", "1", "--workers", "2"], "leave --workers out"),
-    ("0,1", ["--gpus", "1", "--backend", "cpu"], "--backend cpu contradicts it"),
+@pytest.mark.parametrize("command,env,args,expected", [
+    *[(c, "", ["--gpus", "all"], "no CUDA GPU is visible") for c in ("sweep", "stress", "compare", "demo")],
+    ("sweep", "0,1", ["--gpus", "3"], "only 2 GPU(s) visible"),
+    ("sweep", "0,1", ["--gpus", "2"], "needs dask-cuda, which is not installed: pip install 'cloudpbf[multigpu]'"),
+    ("sweep", "0,1", ["--gpus", "zero"], "expected 'all' or a number of GPUs"),
+    ("sweep", "0,1", ["--gpus", "1", "--scheduler", "inline"], "cannot be combined with --scheduler"),
+    ("sweep", "0,1", ["--gpus", "1", "--workers", "2"], "leave --workers out"),
+    ("sweep", "0,1", ["--gpus", "1", "--backend", "cpu"], "--backend cpu contradicts it"),
 ])
-@pytest.mark.parametrize("command", ["sweep", "stress", "compare", "demo"])
 def test_gpus_errors_exit_2_naming_the_option(command, env, args, expected, monkeypatch, tmp_path):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", env)
     monkeypatch.setitem(sys.modules, "dask_cuda", None)          # not installed (an import raises)
