@@ -67,10 +67,10 @@ def scene_pair(name: str) -> tuple[Scene, Scene]:
 
 
 SMOKE_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "time.dt": 4.0,
-             "time.steps": 150, "time.snapshot_every": 25}
+             "time.steps": 120, "time.snapshot_every": 20}
 """The smoke scale's compare box (both modes, level-0 spacing 100 m for the adaptive twin too): the cloud
-scene's physics in a 1.2 x 1.6 x 1.2 km box of 2,304 particles, 600 s at dt = 4 s (at 8 s the adaptive
-run's refined particles hold a 64% density error, at 4 s 3%).  Scaled to 3,000
+scene's physics in a 1.2 x 1.6 x 1.2 km box of 2,304 particles, 480 s at dt = 4 s (at 8 s the adaptive
+run's refined particles hold a 64% density error, at 4 s about 1%).  Scaled to 3,000
 particles in the 3.2 km domain (222 m spacing) no particle run forms a cloud within the smoke run; in
 this box the first cloud appears near t = 320 s (measured on the 2-core CPU, docs/harness.md "Scales")."""
 
