@@ -46,6 +46,9 @@ for step in "$@"; do
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
+    multigpu)  # the sweep's particle runs on 1 GPU, then on 2 (dask-cuda: the multigpu extra, e.g. from .whl/)
+      timeout ${STUDY_TIMEOUT:-590} python3 -m bench.cli multigpu-sweep --gpus-list 1,2 --scale ${MULTIGPU_SCALE:-gpu} \
+        --out "$R" -q && cat "$R/data/multigpu_sweep.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista
