@@ -55,6 +55,23 @@ def test_every_scale_gives_valid_scenes():
         scale_slab(load_scene("smoothing_slab"), scale.slab_particles)
 
 
+def test_smoke_compare_and_sweep_run_in_the_small_box(tmp_path):
+    from bench.studies.compare import compare_specs
+    ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", scheduler=INLINE)
+    for _, _, spec in compare_specs(ctx, "growing", 5):
+        assert tuple(spec.scene.domain.size) == (1200.0, 1600.0, 1200.0)
+        if spec.solver == "particles":   # both modes at 100 m (the adaptive twin's level-0 particles too)
+            assert spec.scene.particles.spacing == 100.0 and spec.scene.time.dt == 4.0
+    plan = sweep.sweep_plan(ctx)
+    spacing = [p["value"] for p in plan if p["parameter"] == "spacing"]
+    adaptive = [p["value"] for p in plan if p["parameter"] == "adaptive_spacing"]
+    assert spacing == adaptive == [110.0, 100.0, 90.0]        # coarse to fine; the finest is the reference
+    assert {tuple(p["spec"].scene.domain.size) for p in plan} == {(1200.0, 1600.0, 1200.0)}
+    for name in ("cpu", "gpu"):                                 # the other scales keep the scaled 3.2 km domain
+        other = StudyContext(out=tmp_path / "out", scale=SCALES[name], runs_root=tmp_path / "runs", scheduler=INLINE)
+        assert {tuple(p["spec"].scene.domain.size) for p in sweep.sweep_plan(other)} == {(3200.0, 3200.0, 3200.0)}
+
+
 def test_scene_pair(tmp_path):
     base, adaptive = scene_pair("cycling")
     assert (base.name, adaptive.name) == ("cycling", "cycling_adaptive")

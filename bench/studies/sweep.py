@@ -40,6 +40,9 @@ from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
 SCENE = "growing"
+SMOKE_BOX_SCENE = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
+                   "time.snapshot_every": 20}
+"""The smoke sweep's box (bench.studies.compare.SMOKE_BOX without its spacing)."""
 
 
 def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
@@ -47,9 +50,17 @@ def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
     scale = ctx.scale
     base = load_scene(scene_name)
     adaptive = load_scene(f"{scene_name}_adaptive")
-    counts = sorted(scale.sweep_particles)
+    box = getattr(scale, "sweep_box", None)
+    if box:   # spacings (m) in a small box; the adaptive level-0 particles at the same spacing
+        box = dict(box)
+        spacings = box.pop("spacings")
+        counts = sorted(spacings, reverse=True)                 # coarse to fine, as the counts
+        make = lambda scene, s, adaptive_twin=False: scene.replace(**box, **{"particles.spacing": float(s)})  # noqa: E731
+    else:
+        counts = sorted(scale.sweep_particles)
+        make = lambda scene, n, adaptive_twin=False: scale_scene(scene, n, scale.step_fraction)  # noqa: E731
     middle = counts[len(counts) // 2]
-    mid_scene = scale_scene(base, middle, scale.step_fraction)
+    mid_scene = make(base, middle)
     analysis, _ = grid_for_scene(mid_scene)
     plan = []
 
@@ -59,13 +70,13 @@ def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
         plan.append(dict(method="particles", parameter=parameter, value=value, mode=mode, spec=spec))
 
     for n in counts:
-        scene = scale_scene(base, n, scale.step_fraction)
+        scene = make(base, n)
         particles("spacing", scene.particles.spacing, "non-adaptive", scene)
-        scene = scale_scene(adaptive, n, scale.step_fraction)
+        scene = make(adaptive, n, True)
         particles("adaptive_spacing", scene.particles.spacing, "adaptive", scene)
     for it in scale.sweep_iterations:
         particles("iterations", it, "non-adaptive", mid_scene.replace(**{"pbf.iterations": int(it)}))
-    mid_adaptive = scale_scene(adaptive, middle, scale.step_fraction)
+    mid_adaptive = make(adaptive, middle, True)
     for alpha in scale.sweep_split_thresholds:
         merge = min(mid_adaptive.adaptive.merge_threshold, 0.5 * alpha)
         particles("split_threshold", alpha, "adaptive",
@@ -205,5 +216,8 @@ register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), 
                        "sweep_iterations": {"smoke": (2, 8), "cpu": (1, 2, 8, 16), "gpu": (1, 2, 8, 16)},
                        "sweep_split_thresholds": {"smoke": (0.15, 0.6), "cpu": (0.1, 0.2, 0.5, 1.0),
                                                   "gpu": (0.1, 0.2, 0.5, 1.0)},
-                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}},
+                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)},
+                       # smoke: the compare study's small box (clouds form there), spacings in m instead of counts
+                       "sweep_box": {"smoke": {**SMOKE_BOX_SCENE, "spacings": (110.0, 100.0, 90.0)},
+                                     "cpu": None, "gpu": None}},
                 command=sweep_command))
