@@ -30,8 +30,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
                               parse_overrides, refusals, scene_arg, study_context)
 from bench.grid_scaling import grid_scaling_command
 
@@ -151,7 +151,7 @@ def report(out: OutOpt = DEFAULT_OUT) -> None:
 def demo(
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
     only: Annotated[Optional[str], typer.Option(
         help="comma-separated subset of the demo's studies (those of bench.studies.registry; an unknown "
              "name lists them)")] = None,
@@ -165,7 +165,7 @@ def demo(
     bad = [s for s in chosen if s not in studies]
     if bad:
         raise typer.BadParameter(f"'{bad[0]}': allowed {', '.join(studies)}", param_hint="'--only'")
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             index, status = run_demo(ctx, only=chosen)
     failed = [name for name, st in status.items() if not st["ok"]]

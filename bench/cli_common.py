@@ -58,6 +58,9 @@ SchedulerOpt = Annotated[Optional[str], typer.Option(
     "--scheduler", help="address of an existing dask scheduler (e.g. tcp://host:8786) instead of a local "
                         "cluster; 'inline': no dask, the runs one by one in this process")]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="no progress bars or progress messages")]
+GpusOpt = Annotated[Optional[str], typer.Option(
+    "--gpus", help="'all' or a count: one dask-cuda worker per GPU (LocalCUDACluster), each pinned to its GPU "
+                   "through CUDA_VISIBLE_DEVICES; needs the multigpu extra (dask-cuda)")]
 
 
 
@@ -157,7 +160,7 @@ def check_backend(backend: Backend, solver: str = "particles") -> None:
 def refusals(particles: Optional[int] = None):
     """What a command cannot do as asked ends in one line and exit code 2: scene and memory checks,
     an unusable scheduler, a stale compiled solver."""
-    from bench.studies.context import SchedulerError
+    from bench.studies.context import GpuError, SchedulerError
     from pbf_cuda.buildinfo import StaleBuildError
     from pbf_cuda.scene import SceneError
     try:
@@ -167,12 +170,14 @@ def refusals(particles: Optional[int] = None):
         raise click.UsageError(prefix + " ".join(str(exc).split())) from None
     except SchedulerError as exc:
         raise typer.BadParameter(str(exc), param_hint="'--scheduler'") from None
+    except GpuError as exc:
+        raise typer.BadParameter(str(exc), param_hint="'--gpus'") from None
     except StaleBuildError as exc:
         raise click.UsageError(str(exc)) from None
 
 
 def study_context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Backend, workers: Optional[int],
-             scheduler: Optional[str], quiet: bool):
+                  scheduler: Optional[str], quiet: bool, gpus: Optional[str] = None, cuda_cluster_factory=None):
     from bench import runs
     from bench.studies.context import SchedulerError, StudyContext, check_scheduler_address
     from bench.studies.scales import resolve_scale
@@ -188,7 +193,9 @@ def study_context(out: Path, runs_root: Optional[Path], scale: ScaleName, backen
             raise typer.BadParameter(str(exc), param_hint="'--scheduler'") from None
     with refusals():
         ctx = StudyContext(out=out, scale=resolve_scale(scale.value), runs_root=runs_root or runs.default_root(),
-                           backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet)
+                           backend=backend.value, workers=workers, scheduler=scheduler, quiet=quiet, gpus=gpus,
+                           cuda_cluster_factory=cuda_cluster_factory)
+        ctx.check_gpus()                  # no GPU, too few, no dask-cuda: one line, before any run
         if scheduler is not None and scheduler != "inline":
             ctx.client()                  # fail now, in one line, when no scheduler answers
     write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran

@@ -287,14 +287,15 @@ def _add_particles(pv, plotter, state, scene, color_by, view, window_size, thres
 # ------------------------------------------------------------------------------------------
 def render_particles(state: Mapping, scene, out_png, color_by: str = "cloud", view: str = "iso",
                      window_size: Sequence[int] = (1200, 900), threshold: float = CLOUD_THRESHOLD,
-                     point_size: float | None = None, title: str | None = None) -> Path:
+                     point_size: float | None = None, title: str | None = None, clim=None) -> Path:
     """Render particles of a ``Simulation.state()`` dict to a PNG.
 
     ``color_by``: 'cloud' (only particles with w > threshold, opacity rising with w),
     'cloud_density' (every particle coloured by w), 'temperature', 'temperature_anomaly'
     (T - T0(y)), 'shape_energy' (eq. 20, the scene's k_p and k_c) or 'level'.
     ``view``: 'iso' (perspective; low values of the last four fade out so the inside
-    shows) or 'front' (parallel projection along -z, for slabs).
+    shows) or 'front' (parallel projection along -z, for slabs).  ``clim``: the colour range (lo, hi)
+    (default: the state's own), shared by the frames of an animation.
     """
     if color_by not in COLOR_BY:
         raise ValueError(f"color_by = {color_by!r}: allowed values are {', '.join(COLOR_BY)}")
@@ -305,7 +306,7 @@ def render_particles(state: Mapping, scene, out_png, color_by: str = "cloud", vi
     # in a 3D view an opaque block of particles shows only its surface: let low values fade
     fade = view == "iso" and color_by in ("temperature_anomaly", "shape_energy", "cloud_density", "level")
     drawn = _add_particles(pv, plotter, state, scene, color_by, view, window_size, threshold, point_size,
-                           fade=fade)
+                           clim=clim, fade=fade)
     n = len(state["position"])
     text = title or f"{scene.name}: {n:,} particles, coloured by {color_by}"
     if color_by == "cloud":
@@ -413,6 +414,44 @@ def _side_by_side(panels, scene, out_png, window_size, threshold, point_size, fa
     return _finish(plotter, out_png)
 
 
+def render_animation(frames: Sequence[tuple[float, Mapping]], scene, out_gif, out_strip=None,
+                     window_size: Sequence[int] = (800, 600), strip_width: int = 360,
+                     frame_ms: int = 700, threshold: float = CLOUD_THRESHOLD) -> Path:
+    """The clouds developing: one particle render per (time s, state) frame, written as a looping GIF
+    (`frame_ms` per frame, the last held three times as long) and, with `out_strip`, as one PNG strip
+    of the frames side by side, each `strip_width` px wide, labelled with its time."""
+    from PIL import Image
+    import tempfile
+    if not frames:
+        raise RenderUnavailable("no stored states to animate")
+    out_gif = Path(out_gif)
+    images = []
+    top = max(float(np.max(state["cloud"])) if len(state["cloud"]) else 0.0 for _, state in frames)
+    clim = (0.0, max(top, 1e-12))              # one colour scale for every frame: the growth shows
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (time_s, state) in enumerate(frames):
+            png = Path(tmp) / f"frame_{i:03d}.png"
+            render_particles(state, scene, png, color_by="cloud", window_size=window_size, threshold=threshold,
+                             title=f"{scene.name}, t = {time_s:g} s", clim=clim)
+            with Image.open(png) as im:
+                images.append(im.convert("RGB"))
+    out_gif.parent.mkdir(parents=True, exist_ok=True)
+    palette = [im.quantize(colors=128, method=Image.Quantize.MEDIANCUT) for im in images]
+    durations = [frame_ms] * (len(palette) - 1) + [3 * frame_ms]
+    from pbf_cuda.files import atomic_path
+    with atomic_path(out_gif) as tmp_gif:
+        palette[0].save(tmp_gif, format="GIF", save_all=True, append_images=palette[1:], duration=durations,
+                        loop=0)
+    if out_strip is not None:
+        height = int(round(strip_width * images[0].height / images[0].width))
+        strip = Image.new("RGB", (strip_width * len(images), height), "white")
+        for i, im in enumerate(images):
+            strip.paste(im.resize((strip_width, height), Image.Resampling.LANCZOS), (i * strip_width, 0))
+        with atomic_path(Path(out_strip)) as tmp_png:
+            strip.save(tmp_png, format="PNG")
+    return out_gif
+
+
 # ------------------------------------------------------------------------------------------
 # report glue
 # ------------------------------------------------------------------------------------------
@@ -449,4 +488,5 @@ def render_or_note(render: Callable[..., Path], out_png, *args, **kwargs) -> Pat
     return Path(path)
 
 
-_PNG_POSITION = {render_particles: 2, render_volume: 2, render_slab_comparison: 3, render_shape_energy: 2}
+_PNG_POSITION = {render_particles: 2, render_volume: 2, render_slab_comparison: 3, render_shape_energy: 2,
+                 render_animation: 2}

@@ -51,6 +51,9 @@ for step in "$@"; do
 d = sys.argv[1] + '/data/'
 print(cycle_states(pd.read_csv(d + 'cycling_cycles.csv'), pd.read_csv(d + 'cycling_budgets.csv'), sys.argv[2]))" \
         "$R" /tmp/cycle_states && tar cf "$OUT/cycle_states.tar" -C /tmp cycle_states ;;
+    multigpu)  # the sweep's particle runs on 1 GPU, then on 2 (dask-cuda: the multigpu extra, e.g. from .whl/)
+      timeout ${STUDY_TIMEOUT:-590} python3 -m bench.cli multigpu-sweep --gpus-list 1,2 --scale ${MULTIGPU_SCALE:-gpu} \
+        --out "$R" -q && cat "$R/data/multigpu_sweep.csv" ;;
     compare|stress|sweep)
       timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista

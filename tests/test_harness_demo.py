@@ -50,8 +50,12 @@ def test_smoke_demo_writes_every_study_and_the_report(tmp_path):
     compare = pd.read_csv(out / "data" / "compare_timeseries.csv")
     assert set(compare["mode"]) == {"non-adaptive", "adaptive", "grid"}
     assert compare.groupby("mode")["seed"].nunique().min() >= 5
+    # the smoke box forms clouds in every mode, and the adaptive runs split
+    assert (compare.groupby("mode")["cloud_cover"].max() > 0.1).all(), compare.groupby("mode")["cloud_cover"].max()
+    adaptive = compare[compare["mode"] == "adaptive"]
+    assert adaptive["n_particles"].max() > adaptive["n_particles"].iloc[0]
     for render in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",
-                   "figure3_shape_energy"):
+                   "figure3_shape_energy", "clouds_strip"):
         renders = out / "data" / "renders"
         assert (renders / f"{render}.png").is_file() or (renders / f"{render}.unavailable.txt").is_file()
     # the second demo finds every run in the cache: no run directory is added, and it is much faster

@@ -55,6 +55,23 @@ def test_every_scale_gives_valid_scenes():
         scale_slab(load_scene("smoothing_slab"), scale.slab_particles)
 
 
+def test_smoke_compare_and_sweep_run_in_the_small_box(tmp_path):
+    from bench.studies.compare import compare_specs
+    ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", scheduler=INLINE)
+    for _, _, spec in compare_specs(ctx, "growing", 5):
+        assert tuple(spec.scene.domain.size) == (1200.0, 1600.0, 1200.0)
+        if spec.solver == "particles":   # both modes at 100 m (the adaptive twin's level-0 particles too)
+            assert spec.scene.particles.spacing == 100.0 and spec.scene.time.dt == 4.0
+    plan = sweep.sweep_plan(ctx)
+    spacing = [p["value"] for p in plan if p["parameter"] == "spacing"]
+    adaptive = [p["value"] for p in plan if p["parameter"] == "adaptive_spacing"]
+    assert spacing == adaptive == [110.0, 100.0, 90.0]        # coarse to fine; the finest is the reference
+    assert {tuple(p["spec"].scene.domain.size) for p in plan} == {(1200.0, 1600.0, 1200.0)}
+    for name in ("cpu", "gpu"):                                 # the other scales keep the scaled 3.2 km domain
+        other = StudyContext(out=tmp_path / "out", scale=SCALES[name], runs_root=tmp_path / "runs", scheduler=INLINE)
+        assert {tuple(p["spec"].scene.domain.size) for p in sweep.sweep_plan(other)} == {(3200.0, 3200.0, 3200.0)}
+
+
 def test_scene_pair(tmp_path):
     base, adaptive = scene_pair("cycling")
     assert (base.name, adaptive.name) == ("cycling", "cycling_adaptive")
@@ -114,7 +131,8 @@ def test_largest_stable_dt_stops_at_the_first_failure():
 
 # ---- a study interrupted, then resumed ---------------------------------------------------------------
 TINY = dataclasses.replace(SCALES["smoke"], stress_particles=3000, stress_steps=6,
-                           stress_dt=(1.0, 2.0, 150.0), stress_iterations=(1, 2), stress_alpha_dt=(1.0,))
+                           stress_dt=(1.0, 2.0, 150.0), stress_iterations=(1, 2), stress_alpha_dt=(1.0,),
+                           stress_map_dt=())
 
 
 def test_interrupted_study_reruns_only_what_is_missing(toy_solver, tmp_path, monkeypatch):
@@ -165,6 +183,37 @@ def test_stress_cases_change_one_parameter_each():
             assert scene.atmosphere.heating_rate == value <= stress.MAX_HEATING_RATE
     heating = [v for p, v, _ in cases if p == "heating_rate"]
     assert heating == sorted(set(heating)) and heating[0] == base.atmosphere.heating_rate
+
+
+def test_stress_maps_vary_dt_and_one_other_parameter():
+    base = scale_scene(load_scene("growing"), 3000)
+    scale = SCALES["smoke"]
+    cases = [(p, v, sc) for p, v, sc in stress.stress_cases(base, scale) if p.startswith("dt x ")]
+    per_dt = len(scale.stress_iterations) + len(stress.MAP_HEATING_FACTORS)
+    assert len(cases) == len(scale.stress_map_dt) * per_dt
+    for parameter, value, scene in cases:
+        assert scene.time.dt == value
+        if parameter == "dt x iterations":
+            assert scene.atmosphere == base.atmosphere and scene.pbf.iterations in scale.stress_iterations
+        else:
+            assert scene.pbf == base.pbf
+            factor = scene.atmosphere.heating_rate / base.atmosphere.heating_rate
+            assert min(abs(factor - f) for f in stress.MAP_HEATING_FACTORS) < 1e-9
+
+
+def test_usable_is_stable_and_accurate():
+    frame = pd.DataFrame({"parameter": "dt", "value": [1.0, 2.0, 4.0, 8.0, 16.0],
+                          "stable": [True, True, True, True, False],
+                          "density_error_mean": [0.001, 0.002, 0.004, 0.5, 0.9],
+                          "density_error_max": [0.002, 0.009, 0.02, 0.6, None],
+                          "energy_jump": [1.0, 1.1, 1.2, 1.3, 9.0]})
+    usable = stress.usable_mask(frame)
+    assert usable.tolist() == [True, True, False, False, False]   # 4 s: its worst step exceeds 1%
+    jumpy = frame.assign(energy_jump=[1.0, 3.0, 1.0, 1.0, 1.0])
+    assert stress.usable_mask(jumpy).tolist() == [True, False, False, False, False]
+    out = stress.largest_stable_dt(frame.assign(usable=usable))
+    assert (out["largest_usable_dt"], out["smallest_unusable_dt"]) == (2.0, 4.0)
+    assert (out["largest_stable_dt"], out["smallest_unstable_dt"]) == (8.0, 16.0)
 
 
 def test_dask_workers_run_missing_specs_and_cached_ones_stay_home(tmp_path):

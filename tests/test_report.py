@@ -97,16 +97,27 @@ def write_synthetic_study(out, renders=True):
     frame.assign(seed=0, device=DEVICE, commit=COMMIT).to_csv(data / "adaptive_pareto.csv", index=False)
     (data / "adaptive_verdict.json").write_text(json.dumps({
         "scene": "growing", "cost_ratio_per_particle": 1.1, "noise_floor": 0.02, "variants": [],
+        "best": {"name": "lookahead-68m", "error": 0.15, "error_seed_spread": 0.02, "ms_per_step": 4.5,
+                 "uniform_ms_at_equal_error": 7.2, "speedup_at_equal_error": 1.6},
         "verdict": "growing: the best adaptive variant, lookahead-68m, is 1.60x faster than uniform particles.",
         "device": DEVICE, "commit": COMMIT}))
-    pd.DataFrame([
+    stress = pd.DataFrame([
         ("dt", 0.5, True, "", 400, 4096, 3.0, 0.01), ("dt", 2.0, True, "", 400, 4096, 3.5, 0.01),
         ("dt", 8.0, True, "", 400, 4096, 6.0, 0.03), ("dt", 32.0, False, "velocity bound exceeded", 17, 4096, 250.0, 0.4),
         ("iterations", 1, True, "", 400, 4096, 4.0, 0.05), ("iterations", 4, True, "", 400, 4096, 3.0, 0.01),
         ("phase_rate_dt", 100.0, True, "", 400, 4096, 3.2, 0.01),
-        ("heating_rate", 5.0, False, "NaN in temperature", 3, 4096, 9.0, 0.02),
+        ("heating_rate", 5.0, False, "NaN in temperature", 3, " ".join(map(str, range(100, 140))), 9.0, 0.02),
     ], columns=["parameter", "value", "stable", "reason", "step", "particles", "max_speed", "density_error_mean"]
-    ).assign(device=DEVICE, commit=COMMIT).to_csv(data / "stress.csv", index=False)
+    ).assign(device=DEVICE, commit=COMMIT)
+    maps = []   # 2-D maps: the density error grows with dt and falls with iterations; dt 32 blows up
+    for dt in (2.0, 8.0, 32.0):
+        for it in (1, 4):
+            maps.append(("dt x iterations", dt, dt < 32, dt, it, 0.01, 0.002 * dt / it))
+        for rate in (0.01, 0.1):
+            maps.append(("dt x heating_rate", dt, dt < 32, dt, 4, rate, 0.0005 * dt * (1 + 10 * rate)))
+    maps = pd.DataFrame(maps, columns=["parameter", "value", "stable", "dt", "iterations", "heating_rate",
+                                       "density_error_max"]).assign(density_error_mean=lambda d: d.density_error_max)
+    pd.concat([stress, maps]).to_csv(data / "stress.csv", index=False)
     pd.DataFrame({"case": ["cycling (shipped)", "growing + g_c = 0.1"], "constant_gravity": [0.0, 0.1],
                   "cloud_gravity": [196.2, 9.81], "particles": [8000, 8000], "stable": [True, True],
                   "reason": [None, None], "first_cloud_s": [220.0, 100.0], "max_cover": [0.9, 1.0],
@@ -121,6 +132,10 @@ def write_synthetic_study(out, renders=True):
             ax.imshow(np.random.default_rng(0).random((8, 8)))
             fig.savefig(data / "renders" / f"{name}.png")
             plt.close(fig)
+        from PIL import Image
+        frames = [Image.new("RGB", (16, 12), (40 * i, 90, 200)) for i in range(3)]
+        frames[0].save(data / "renders" / "clouds_animation.gif", save_all=True, append_images=frames[1:])
+        frames[0].save(data / "renders" / "clouds_strip.png")
     return out
 
 
@@ -165,12 +180,14 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["environment", "table1", "phases", "scaling", "adaptive", "compare", "sweep", "adaptive_pareto", "stress",
-                        "renders", "figure1", "figure3"]
-    # self-contained: only in-page anchors and embedded images
+    assert expected == ["environment", "summary", "table1", "phases", "scaling", "adaptive", "compare", "sweep",
+                        "adaptive_pareto", "stress", "renders", "figure1", "figure3"]
+    # self-contained: only in-page anchors and embedded images; no path of this machine
     assert not re.search(r"https?://", page)
-    assert all(r.startswith("#") or r.startswith("data:image/png;base64,") for r in parser.refs), parser.refs
-    assert parser.images == 14   # every figure and render of the synthetic study
+    assert all(r.startswith("#") or r.startswith(("data:image/png;base64,", "data:image/gif;base64,"))
+               for r in parser.refs), parser.refs
+    assert str(out) not in page and str(out.parent) not in page
+    assert parser.images == 17   # every figure and render of the synthetic study, the 2-D map and the animation
     sections = _sections(page)
     for sid in expected:
         assert "not run in this study" not in sections[sid], sid
@@ -180,7 +197,10 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     assert "1087" in sections["table1"]                       # paper's pbf ms beside ours
     assert "1.657" in sections["table1"]                      # paper speedup growing: 1218.95 / 735.64
     assert "scaled down" in sections["table1"]                # cpu-smoke labelled
-    assert "Largest stable dt: 8 s" in sections["stress"]
+    # usable: density error <= 1% (0.5 and 2 s); stable: up to 8 s
+    assert ("Largest usable dt (density error &lt;= 1%): 2 s; largest stable dt (no blow-up, accuracy aside): 8 s"
+            in sections["stress"])
+    assert "40 ids: 100 101 102 …" in sections["stress"] and "120 121" not in sections["stress"]
     assert "velocity bound exceeded" in sections["stress"]
     # sweep verdict at equal error 0.05: adaptive 0.6 * (100/50)^3 = 4.8 s, non-adaptive 8 s
     assert "adaptive needs 4.8 s and non-adaptive 8 s: adaptive is 1.67x faster" in sections["sweep"]
@@ -343,3 +363,123 @@ def test_failed_study_is_shown_in_its_sections(tmp_path):
     assert "2 more lines" in sections["stress"]
     assert "study failed" not in sections["sweep"]
     assert "Studies that failed in this run: stress" in page
+
+
+# --------------------------------------------------------------------------------------------
+# the page at a glance: summary, confidence intervals, tests, zoomable figures, the registry
+# --------------------------------------------------------------------------------------------
+def test_summary_answers_first_from_the_data(full_report):
+    sections = _sections(full_report[1])
+    summary = sections["summary"]
+    # Table 1: growing non-adaptive 35 ms against the paper's 1218.95 ms
+    assert "growing non-adaptive: 35 ms (paper 1.22e+03 ms, 34.8x faster)" in summary
+    assert "scaled-down CPU runs" in summary
+    # the adaptive speed-up is quoted with the error it holds at, never alone
+    assert ("growing: best adaptive variant (lookahead-68m) 1.60x faster than uniform particles at equal error "
+            "0.15 (seed spread 0.02, seed-noise floor 0.02): 4.5 against 7.2 ms per step") in summary
+    # particles against grid: the final cover's seed mean (95% interval) for both
+    assert "final cloud cover, particles non-adaptive 0.25 (n=5) against grid 0.25 (n=5)" in summary
+    assert "Largest usable dt (density error &lt;= 1%): 2 s" in summary
+    for target in ("table1", "adaptive_pareto", "compare", "stress"):
+        assert f'href="#{target}"' in summary
+    assert full_report[1].index('id="summary"') < full_report[1].index('id="table1"')
+
+
+def test_table1_total_against_paper_comes_before_the_phase_columns(full_report):
+    table1 = _sections(full_report[1])["table1"]
+    heads = re.findall(r"<th>([^<]*)</th>", table1)
+    assert heads[:5] == ["example", "mode", "total ms", "total ms (paper)", "paper / measured"]
+    assert heads.index("pbf ms") > heads.index("adaptive speedup")
+
+
+def test_every_figure_opens_full_size(full_report):
+    page = full_report[1]
+    figures = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)
+    assert len(figures) == page.count("<img ") == 17
+    assert all(fid == href for fid, href in figures)
+    assert len({fid for fid, _ in figures}) == len(figures)          # one anchor per figure
+    assert "figure.zoom:target" in page
+
+
+def test_seed_statistics_are_t_intervals_and_welch_tests():
+    from scipy import stats as sst
+    from bench.report.inference import format_ci, mean_ci, welch
+    x = np.array([0.61, 0.72, 0.55, 0.68, 0.70])
+    ci = mean_ci(x)
+    half = sst.t.ppf(0.975, 4) * x.std(ddof=1) / np.sqrt(5)    # the closed form
+    assert ci.n == 5 and ci.mean == pytest.approx(x.mean())
+    assert (ci.lo, ci.hi) == pytest.approx((x.mean() - half, x.mean() + half))
+    assert format_ci([0.5]) == "0.5" and format_ci([]) == "–" and format_ci([np.nan, 2.0, 2.0]) == "2 (n=2)"
+    # coverage: the 95% interval holds the true mean in about 95% of normal samples of 5
+    rng = np.random.default_rng(1)
+    samples = rng.normal(3.0, 2.0, (2000, 5))
+    hits = 0
+    for row in samples:
+        c = mean_ci(row)
+        hits += c.lo <= 3.0 <= c.hi
+    assert 0.93 <= hits / len(samples) <= 0.97
+    # Welch: the unequal-variance statistic by hand
+    y = np.array([0.31, 0.45, 0.38, 0.29])
+    t, p = welch(x, y)
+    va, vb = x.var(ddof=1) / 5, y.var(ddof=1) / 4
+    assert t == pytest.approx((x.mean() - y.mean()) / np.sqrt(va + vb))
+    dof = (va + vb) ** 2 / (va**2 / 4 + vb**2 / 3)
+    assert p == pytest.approx(2 * sst.t.sf(abs(t), dof))
+    assert np.isnan(welch([1.0], y)[1]) and np.isnan(welch([1.0, 1.0], [2.0, 2.0])[1])
+
+
+def test_adaptive_section_tests_the_modes_against_each_other(full_report):
+    adaptive = _sections(full_report[1])["adaptive"]
+    assert "Welch" in adaptive and "final cloud cover (fraction)" in adaptive
+    assert "95% confidence interval" in adaptive and "± " not in adaptive
+
+
+def test_plot_labels_and_relative_water_change():
+    assert plots.series_name("grid", "grid") == "grid"
+    assert plots.series_name("particles", "adaptive") == "particles adaptive"
+    df = pd.DataFrame({"solver": "particles", "mode": "adaptive", "seed": [0, 0, 1, 1],
+                       "time_s": [0.0, 10.0, 0.0, 10.0], "total_water": [3.2e8, 3.2e8 * 1.001, 4.0e8, 4.0e8 * 0.99]})
+    assert plots.relative_change(df, "total_water").to_numpy() == pytest.approx([0.0, 1e-3, 0.0, -0.01])
+
+
+def test_report_sections_come_from_the_study_registry(tmp_path):
+    from bench.report import report_sections
+    from bench.studies import registry
+    owned = {r.id for s in registry.studies() for r in s.report}
+    fed = {sid for s in registry.studies() for sid in s.sections}
+    assert fed <= owned                                   # every section a study feeds has a builder
+    extra = registry.Study("toy-report", order=999, report=(registry.ReportSection(
+        "toy", "A toy section", "tests.test_report:_toy_builder", 55),))
+    registry.register(extra)
+    try:
+        ids = [r.id for r in report_sections()]
+        assert ids.index("toy") == ids.index("compare") + 1        # order 55: after compare (50)
+        out = tmp_path / "study"
+        (out / "data").mkdir(parents=True)
+        sections = _sections(build_report(out).read_text())
+        assert "toy data: 42" in sections["toy"]
+    finally:
+        registry._REGISTRY.pop("toy-report")
+
+
+def _toy_builder(inp, sec, env):
+    sec.add("text", "toy data: 42")
+
+
+def test_animation_is_a_looping_gif_and_a_strip_of_every_frame(tmp_path):
+    _rendering()
+    from PIL import Image
+    from pbf_cuda.scene import load_scene
+    slab = load_scene("smoothing_slab", **{"particles.spacing": 100.0, "domain.size": [3200.0, 3200.0, 600.0]})
+    grow = _slab_state(slab, False)
+    frames = [(t, dict(grow, cloud=grow["cloud"] * t / 200.0)) for t in (0.0, 100.0, 200.0)]   # cloud grows
+    gif = render.render_animation(frames, slab, tmp_path / "a.gif", out_strip=tmp_path / "s.png",
+                                  window_size=(160, 120), strip_width=80)
+    with Image.open(gif) as im:
+        assert im.n_frames == 3 and im.info.get("loop") == 0
+    with Image.open(tmp_path / "s.png") as strip:
+        assert strip.size == (3 * 80, 60)
+        pixels = np.asarray(strip.convert("L"), dtype=float)
+    # the first frame (no cloud) differs from the last (cloud)
+    assert np.abs(pixels[:, :80] - pixels[:, 160:]).mean() > 0.5
+    assert render.render_or_note(render.render_animation, tmp_path / "b.gif", [], slab) is None

@@ -34,36 +34,37 @@ import pandas as pd
 from bench.pareto import pareto_front
 
 from . import plots
+from .inference import LEVEL, format_ci, mean_ci, welch
 
-__all__ = ["build_report", "SECTIONS", "COMMANDS", "PAPER_TABLE1"]
+__all__ = ["build_report", "report_sections", "SECTIONS", "COMMANDS", "PAPER_TABLE1"]
 
 PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 PHASES = plots.PHASES
 
-SECTIONS = (
-    ("environment", "Environment"),
-    ("table1", "Table 1: phase timings against the paper"),
-    ("phases", "Per-phase cost"),
-    ("scaling", "Scaling"),
-    ("adaptive", "Adaptive against non-adaptive"),
-    ("compare", "Particles against the grid baseline"),
-    ("sweep", "Run time against error"),
-    ("adaptive_pareto", "Adaptive mode at equal error"),
-    ("stress", "Stability map"),
-    ("renders", "Cloud renders"),
-    ("figure1", "Figure 1: temperature smoothing"),
-    ("figure3", "Figure 3: shape energy"),
-)
-"""(id, title) of every section, in order; every id is always present in the page."""
+
+def report_sections():
+    """Every section of the page, in order: the report's own (environment, the summary) and those the
+    studies own (``ReportSection`` in each study's registration, bench.studies.registry)."""
+    from bench.studies.registry import ReportSection, report_sections as owned
+    own = (ReportSection("environment", "Environment", f"{__name__}:_environment", 0),
+           ReportSection("summary", "At a glance", f"{__name__}:_summary", 5))
+    return tuple(sorted(own + owned(), key=lambda r: (r.order, r.id)))
+
+
+def __getattr__(name):
+    if name == "SECTIONS":   # (id, title) of every section, in order; every id is always present in the page
+        return tuple((r.id, r.title) for r in report_sections())
+    raise AttributeError(name)
+
 
 COMMANDS = {
     "environment": "cloudpbf demo --out {out}",
     "table1": "cloudpbf table1 --out {out}",
     "pbf_scaling": "cloudpbf scaling --out {out}",
-    "grid_scaling": "python -m bench.grid_scaling --sizes 32 64 128 --out {out}/data/grid_scaling.csv",
-    "adaptive_cost": "python -m bench.studies.adaptive_cost --spacing 45 --out {out}/data/adaptive_cost.csv",
-    "constant_gravity": "python -m bench.studies.constant_gravity --out {out}/data/constant_gravity.csv",
+    "grid_scaling": "cloudpbf grid-scaling --sizes 32,64,128 --out {out}/data/grid_scaling.csv",
+    "adaptive_cost": "cloudpbf adaptive-cost --spacing 45 --out {out}/data/adaptive_cost.csv",
+    "constant_gravity": "cloudpbf constant-gravity --out {out}/data/constant_gravity.csv",
     "compare": "cloudpbf compare growing --out {out}",
     "sweep": "cloudpbf sweep --out {out}",
     "adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}",
@@ -136,9 +137,9 @@ class Inputs:
             return None
         return json.loads(path.read_text())
 
-    def render(self, name: str) -> tuple[Path | None, str | None]:
-        """(png path, None) if rendered, (None, reason) if a note says why not, else (None, None)."""
-        png = self.renders / f"{name}.png"
+    def render(self, name: str, suffix: str = ".png") -> tuple[Path | None, str | None]:
+        """(image path, None) if rendered, (None, reason) if a note says why not, else (None, None)."""
+        png = self.renders / f"{name}{suffix}"
         if png.is_file() and png.stat().st_size > 0:
             return png, None
         note = self.renders / f"{name}.unavailable.txt"
@@ -150,8 +151,18 @@ class Inputs:
 # ------------------------------------------------------------------------------------------
 # helpers
 # ------------------------------------------------------------------------------------------
+def _shown_path(path: Path) -> str:
+    """A path as the report prints it: relative to the working directory when inside it, else its name
+    (the report never shows a machine's absolute path)."""
+    path = Path(path)
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve())) or "."
+    except ValueError:
+        return path.name
+
+
 def _command(key: str, out: Path) -> str:
-    return COMMANDS[key].format(out=str(out))
+    return COMMANDS[key].format(out=_shown_path(out))
 
 
 def _missing(section: Section, what: str, key: str, out: Path) -> None:
@@ -160,6 +171,20 @@ def _missing(section: Section, what: str, key: str, out: Path) -> None:
 
 HIDDEN_COLUMNS = ("run_dir",)
 """Columns never shown in tables (machine-local paths)."""
+
+MAX_CELL = 48
+"""Longest text shown in a table cell; longer cells (lists of particle ids, error messages) are cut."""
+
+
+def shorten(text: str, limit: int = MAX_CELL) -> str:
+    """A cell's text cut to `limit` characters; a list of ids keeps its first few and says how many."""
+    text = " ".join(str(text).split())
+    if len(text) <= limit:
+        return text
+    words = text.split(" ")
+    if len(words) > 3 and all(w.lstrip("-").isdigit() for w in words):
+        return f"{len(words)} ids: {' '.join(words[:3])} …"
+    return text[:limit - 1].rstrip() + "…"
 
 
 def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) -> str:
@@ -170,6 +195,8 @@ def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) 
             if math.isnan(v):
                 return "–"
             return float_format.format(v)
+        if isinstance(v, str):
+            return shorten(v)
         return v
     shown = df.copy()
     for col in shown.columns:
@@ -201,12 +228,10 @@ def _scale_of(env: dict | None, df: pd.DataFrame | None = None) -> str:
 
 
 def _mean_sd(values: pd.Series) -> str:
-    values = pd.to_numeric(values, errors="coerce").dropna()
-    if values.empty:
+    """Mean over seeds with its 95% t-interval: 'mean [lo, hi]' (bench.report.inference)."""
+    if values is None:
         return "–"
-    if len(values) == 1:
-        return f"{values.iloc[0]:.4g}"
-    return f"{values.mean():.4g} ± {values.std(ddof=1):.2g}"
+    return format_ci(values, digits=4)
 
 
 def _numeric(df: pd.DataFrame, col: str) -> pd.Series:
@@ -231,6 +256,114 @@ def _environment(inp: Inputs, sec: Section, env: dict | None) -> None:
         sec.add("note", f"Scale '{scale}': a CPU run at scaled-down particle counts and step counts. Timings "
                         "show the harness works and how costs divide; they are not comparable with the paper's GPU "
                         "numbers (see reports/gpu for the GPU reference results).", level="warn")
+
+
+def _summary_row(rows: list, question: str, answer: str, section: str, missing_key: str | None = None,
+                 out: Path | None = None) -> None:
+    rows.append((question, answer, section, _command(missing_key, out) if missing_key and out else ""))
+
+
+def _summary_table1(inp: Inputs, env: dict | None) -> str | None:
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        return None
+    measured = measured.copy()
+    measured["total_ms"] = _measured_total(measured)
+    paper = _paper_table().set_index(["example", "mode"])["total_ms"]
+    parts = []
+    for r in measured.itertuples():
+        p = paper.get((r.example, r.mode), math.nan)
+        ratio = (p / r.total_ms) if r.total_ms and np.isfinite(p) else math.nan
+        parts.append(f"{r.example} {r.mode}: {r.total_ms:.3g} ms (paper {p:.3g} ms"
+                     + (f", {ratio:.3g}x faster" if ratio >= 1 else f", {1 / ratio:.3g}x slower" if ratio > 0 else "")
+                     + ")")
+    scale = _scale_of(env, measured)
+    note = "" if scale == "gpu" else f" [scale '{scale}': scaled-down CPU runs, not comparable with the paper]"
+    return "; ".join(parts) + note
+
+
+def _summary_adaptive(inp: Inputs) -> str | None:
+    """The adaptive speed-up at equal error, always beside the error it holds at."""
+    parts = []
+    for suffix in ("", "_cumulus"):
+        path = inp.data / f"adaptive_verdict{suffix}.json"
+        if not path.is_file():
+            continue
+        v = json.loads(path.read_text())
+        best = v.get("best") or {}
+        speed = best.get("speedup_at_equal_error")
+        if speed is None or not np.isfinite(speed):
+            scene, text = v.get("scene", suffix.strip("_") or "growing"), str(v.get("verdict", "no verdict"))
+            parts.append(text if text.startswith(scene) else f"{scene}: {text}")
+            continue
+        word = f"{speed:.2f}x faster" if speed >= 1 else f"{1 / speed:.2f}x slower"
+        parts.append(f"{v.get('scene', 'growing')}: best adaptive variant ({best.get('name', '?')}) {word} than "
+                     f"uniform particles at equal error {best.get('error', math.nan):.3g} "
+                     f"(seed spread {best.get('error_seed_spread', math.nan):.2g}, seed-noise floor "
+                     f"{v.get('noise_floor') or math.nan:.2g}): {best.get('ms_per_step', math.nan):.3g} against "
+                     f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step")
+    if parts:
+        return "; ".join(parts)
+    path = inp.data / "sweep_verdict.json"
+    if path.is_file():
+        v = json.loads(path.read_text())
+        comps = v.get("comparisons") or []
+        if comps:
+            errs = [c["error"] for c in comps]
+            return (f"{v.get('verdict', '')} at errors {min(errs):.3g}..{max(errs):.3g} "
+                    f"({v.get('metric', 'error against the finest run')})")
+        return f"sweep: {v.get('verdict', 'no verdict')}"
+    return None
+
+
+def _summary_agreement(inp: Inputs) -> str | None:
+    ts, _ = inp.csv("compare_timeseries")
+    if ts is None or "solver" not in ts.columns or not {"particles", "grid"} <= set(ts["solver"]):
+        return None
+    parts = []
+    last = ts.sort_values("time_s").groupby(["solver", "mode", "seed"]).tail(1)
+    grid = last[last["solver"] == "grid"]["cloud_cover"]
+    for mode in ("non-adaptive", "adaptive"):
+        part = last[(last["solver"] == "particles") & (last["mode"] == mode)]["cloud_cover"]
+        if not len(part):
+            continue
+        _, p = welch(part, grid)
+        parts.append(f"final cloud cover, particles {mode} {format_ci(part)} against grid {format_ci(grid)}"
+                     + ("" if math.isnan(p) else f" (Welch p = {p:.2g})"))
+    return "; ".join(parts) + f" (mean [{100 * LEVEL:g}% CI] over seeds)" if parts else None
+
+
+def _summary_stability(inp: Inputs) -> str | None:
+    df, _ = inp.csv("stress")
+    if df is None:
+        return None
+    return stress_limits(df) or None
+
+
+def _summary(inp: Inputs, sec: Section, env: dict | None) -> None:
+    """The answers a reader comes for, one line each, with the section that holds the evidence."""
+    rows = [("Step time against the paper's Table 1 (total ms per step)", _summary_table1(inp, env), "table1",
+             "table1"),
+            ("Adaptive speed-up at equal error (with that error)", _summary_adaptive(inp), "adaptive_pareto",
+             "adaptive_pareto"),
+            ("Particles against the grid baseline", _summary_agreement(inp), "compare", "compare"),
+            ("Stability limit", _summary_stability(inp), "stress", "stress")]
+    import html
+    titles = dict((r.id, r.title) for r in report_sections())
+    body = []
+    for question, answer, target, key in rows:
+        if answer is None:
+            answer_html = (f'<span class="na">not run in this study</span> (<code>'
+                           f"{html.escape(_command(key, inp.out))}</code>)")
+        else:
+            answer_html = html.escape(answer)
+        body.append(f"<tr><th>{html.escape(question)}</th><td>{answer_html}</td>"
+                    f'<td><a href="#{target}">{html.escape(titles.get(target, target))}</a></td></tr>')
+    sec.add("table", '<table class="summary"><tr><th>question</th><th>answer (measured)</th><th>details</th></tr>'
+            + "".join(body) + "</table>", caption=(
+                "At a glance; the wide tables and figures follow in the sections named on the right."))
+    sec.provenance = _provenance(inp.csv("table1")[0], inp.csv("compare_timeseries")[0], inp.csv("stress")[0],
+                                 env=env)
 
 
 def _paper_table() -> pd.DataFrame:
@@ -292,6 +425,9 @@ def _table1(inp: Inputs, sec: Section, env: dict | None) -> None:
         rows.append(row)
     table = pd.DataFrame(rows)
     table = table.loc[:, [c for c in table.columns if not table[c].isna().all() or "paper" in c or c == "total ms"]]
+    first = ["example", "mode", "total ms", "total ms (paper)", "paper / measured", "adaptive speedup",
+             "adaptive speedup (paper)"]
+    table = table[[c for c in first if c in table.columns] + [c for c in table.columns if c not in first]]
     sec.add("table", _table(table), caption=(
         "Milliseconds per step per phase, measured beside the paper's Table 1 (GeForce GTX 780 Ti). "
         "'adaptive speedup' = non-adaptive total / adaptive total of the same example; "
@@ -393,10 +529,15 @@ def _adaptive(inp: Inputs, sec: Section, env: dict | None) -> None:
         _missing(sec, "table1.csv (adaptive speedup)", "table1", inp.out)
     if particles is not None:
         count_col = next((c for c in PARTICLE_COUNT_COLUMNS if c in particles.columns), None)
-        panels = ([(count_col, "particles")] if count_col else []) + [
-            ("cloud_cover", "cloud cover"), ("lwp_mean", "mean LWP (kg/m$^2$)"), ("total_water", "total water (kg)")]
-        sec.add("image", plots.timeseries_plot(particles, panels), caption=(
-            "Particle runs, non-adaptive and adaptive: mean over seeds, band = min..max over seeds."))
+        panels = ([(count_col, "particles (count)")] if count_col else []) + [
+            ("cloud_cover", "cloud cover (fraction of columns)"), ("lwp_mean", "mean liquid water path (kg/m$^2$)")]
+        shown = particles
+        if "total_water" in particles.columns:
+            shown = particles.assign(total_water_change=plots.relative_change(particles, "total_water"))
+            panels.append(("total_water_change", "total water (vapor + cloud), relative change since t = 0"))
+        sec.add("image", plots.timeseries_plot(shown, panels), caption=(
+            "Particle runs, non-adaptive and adaptive: mean over seeds, band = min..max over seeds. Total water "
+            "is shown as its relative change from each run's start (conserved without sources: it stays near 0)."))
         rows = []
         for mode, g in particles.groupby("mode", sort=True):
             last = g.sort_values("time_s").groupby("seed").tail(1)
@@ -407,11 +548,49 @@ def _adaptive(inp: Inputs, sec: Section, env: dict | None) -> None:
                 row["final particles"] = _mean_sd(last[count_col])
                 row["max particles"] = f"{pd.to_numeric(g[count_col]).max():.0f}"
             rows.append(row)
-        sec.add("table", _table(pd.DataFrame(rows)), caption="mean ± standard deviation over seeds")
+        sec.add("table", _table(pd.DataFrame(rows)), caption="mean [95% confidence interval, t over seeds]")
+        tests = adaptive_tests(particles, inp.csv("compare_runs")[0])
+        if tests is not None:
+            sec.add("table", _table(tests), caption=(
+                "Adaptive against non-adaptive, seed by seed: Welch's t-test (unequal variances, scipy.stats."
+                "ttest_ind) of each quantity; p < 0.05: the difference is larger than the seed spread explains. "
+                "Wall time is the time inside step() of each run (compare_runs.csv)."))
     else:
         _missing(sec, "compare_timeseries.csv with both particle modes (cloud statistics over time)", "compare",
                  inp.out)
     sec.provenance = _provenance(table1, ts, env=env)
+
+
+def _per_seed(particles: pd.DataFrame, runs_df: pd.DataFrame | None, mode: str) -> dict:
+    """quantity label -> per-seed values of one particle mode (the last time of each seed's series)."""
+    g = particles[particles["mode"] == mode]
+    last = g.sort_values("time_s").groupby("seed").tail(1)
+    out = {"onset time (s)": [_onset(gs) for _, gs in g.groupby("seed")],
+           "final cloud cover (fraction)": last["cloud_cover"]}
+    if "lwp_mean" in last.columns:
+        out["final mean LWP (kg/m2)"] = last["lwp_mean"]
+    if runs_df is not None and {"solver", "mode", "step_wall_s"} <= set(runs_df.columns):
+        r = runs_df[(runs_df["solver"] == "particles") & (runs_df["mode"] == mode)]
+        out["wall time in step() (s)"] = r["step_wall_s"]
+    return out
+
+
+def adaptive_tests(particles: pd.DataFrame, runs_df: pd.DataFrame | None = None) -> pd.DataFrame | None:
+    """One row per quantity: both modes' mean [95% CI] over seeds, the difference and Welch's p-value;
+    None without both modes."""
+    if particles is None or not {"non-adaptive", "adaptive"} <= set(particles["mode"]):
+        return None
+    fixed, adapt = _per_seed(particles, runs_df, "non-adaptive"), _per_seed(particles, runs_df, "adaptive")
+    rows = []
+    for name in fixed:
+        if name not in adapt:
+            continue
+        a, b = mean_ci(fixed[name]), mean_ci(adapt[name])
+        t, p = welch(adapt[name], fixed[name])    # t > 0: adaptive larger
+        rows.append({"quantity": name, "non-adaptive": format_ci(a), "adaptive": format_ci(b),
+                     "seeds": f"{a.n} / {b.n}", "adaptive - non-adaptive": b.mean - a.mean, "Welch t": t,
+                     "p": p, "significant (5%)": "–" if math.isnan(p) else ("yes" if p < 0.05 else "no")})
+    return pd.DataFrame(rows) if rows else None
 
 
 def _onset(g: pd.DataFrame) -> float:
@@ -474,7 +653,7 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
                     row[f"final {label}"] = _mean_sd(last[col])
             rows.append(row)
         sec.add("table", _table(pd.DataFrame(rows)), caption=(
-            "At each run's last time; mean ± standard deviation over seeds (onset: first time with cover > 0; "
+            "At each run's last time; mean [95% confidence interval, t over seeds] (onset: first time with cover > 0; "
             "'–' where no cloud formed)."))
         if "seed" in ts.columns and ts.groupby(keys)["seed"].nunique().min() < 5:
             sec.add("note", "fewer than 5 seeds in at least one group: the spread is not well sampled.", level="warn")
@@ -509,7 +688,7 @@ def _cycling(inp: Inputs, sec: Section) -> None:
                          "peak cover": _mean_sd(g["peak_cover"]), "min cover": _mean_sd(g["min_cover"])})
         sec.add("table", _table(pd.DataFrame(rows)), caption=(
             f"Full cycles per run from {path.name}: after the cover first reaches half its peak, a fall below "
-            "20% of the peak followed by a climb back above 50%; mean ± standard deviation over seeds."))
+            "20% of the peak followed by a climb back above 50%; mean [95% confidence interval, t over seeds]."))
 
 
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
@@ -620,16 +799,23 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
         return
     df = df.copy()
     df["stable"] = df["stable"].map(plots._truthy)
-    sec.add("image", plots.stability_map(df), caption="green: ran to the end; red: stopped as unstable (reason shown)")
-    dt = df[df["parameter"] == "dt"]
-    if len(dt):
-        values = pd.to_numeric(dt["value"], errors="coerce")
-        stable = values[dt["stable"]]
-        unstable = values[~dt["stable"]]
-        text = (f"Largest stable dt: {stable.max():g} s." if len(stable) else "No dt in the sweep was stable.")
-        if len(unstable):
-            text += f" Smallest unstable dt: {unstable.min():g} s."
-        sec.add("text", text)
+    from bench.studies.stress import DENSITY_ERROR_LIMIT, ENERGY_JUMP_LIMIT, usable_mask
+    df["usable"] = df["usable"].map(plots._truthy) if "usable" in df.columns else usable_mask(df)
+    energy = ENERGY_JUMP_LIMIT if "energy_jump" in df.columns else None
+    if df["parameter"].astype(str).str.startswith("dt x ").any():
+        sec.add("image", plots.stability_map_2d(df, DENSITY_ERROR_LIMIT, energy), caption=(
+            "Two-parameter maps: every cell one run of the stress scene. Colour: the largest per-step mean density "
+            "error (eq. 1); black line: the usable region's boundary (an accuracy bound, not only blow-up)."))
+    else:
+        sec.add("note", "no 2-D map in this stress.csv (made by an older version of the stress study); "
+                        "rerun it for the dt x iterations and dt x heating-rate maps.", level="missing",
+                command=_command("stress", inp.out))
+    sec.add("image", plots.stability_map(df), caption=(
+        f"One parameter at a time. Green: usable (stable and density error <= {100 * DENSITY_ERROR_LIMIT:g}%); "
+        "orange: ran to the end but not usable; red: stopped as unstable (reason shown)."))
+    limit = stress_limits(df)
+    if limit:
+        sec.add("text", limit)
     bad = df[~df["stable"]]
     numeric = [c for c in ("max_speed", "density_error_mean") if c in df.columns]
     finite = df[df["stable"]][numeric].apply(pd.to_numeric, errors="coerce")
@@ -654,6 +840,26 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.provenance = _provenance(df, env=env)
 
 
+def stress_limits(df: pd.DataFrame) -> str:
+    """'Largest usable dt (density error <= X%): ... s; largest stable dt: ... s.' from the 1-D dt cases."""
+    from bench.studies.stress import DENSITY_ERROR_LIMIT, largest_stable_dt, usable_mask
+    dt = df[df["parameter"] == "dt"].copy()
+    if not len(dt):
+        return ""
+    dt["value"] = pd.to_numeric(dt["value"], errors="coerce")
+    dt["stable"] = dt["stable"].map(plots._truthy)
+    dt["usable"] = dt["usable"].map(plots._truthy) if "usable" in dt.columns else usable_mask(dt)
+    found = largest_stable_dt(dt)
+    usable, stable = found["largest_usable_dt"], found["largest_stable_dt"]
+    text = (f"Largest usable dt (density error <= {100 * DENSITY_ERROR_LIMIT:g}%): "
+            + (f"{usable:g} s" if usable is not None else "none of the tried dt") + "; ")
+    text += (f"largest stable dt (no blow-up, accuracy aside): {stable:g} s" if stable is not None
+             else "no tried dt was stable")
+    if found["smallest_unstable_dt"] is not None:
+        text += f"; smallest unstable dt: {found['smallest_unstable_dt']:g} s"
+    return text + "."
+
+
 def _render_blocks(inp: Inputs, sec: Section, names_captions) -> None:
     for name, caption in names_captions:
         png, reason = inp.render(name)
@@ -670,6 +876,17 @@ def _renders(inp: Inputs, sec: Section, env: dict | None) -> None:
         ("clouds_particles", "particles with w > 1e-5 kg/kg, opacity rising with cloud density (clear air transparent)"),
         ("clouds_volume", "volume render of the particles' cloud field deposited on the statistics grid"),
     ])
+    gif, reason = inp.render("clouds_animation", ".gif")
+    if gif is not None:
+        sec.add("image", plots.file_uri(gif, "image/gif"), caption=(
+            "The clouds developing: every stored state of the non-adaptive seed-0 compare run, looping "
+            "(particles with w > 1e-5 kg/kg)."))
+        _render_blocks(inp, sec, [("clouds_strip", "the same states side by side, time increasing to the right")])
+    elif reason is not None:
+        sec.add("note", f"clouds_animation: render unavailable: {reason}", level="warn",
+                command=_command("renders", inp.out))
+    else:
+        _missing(sec, "the animation of the clouds developing (renders/clouds_animation.gif)", "renders", inp.out)
 
 
 def _figure1(inp: Inputs, sec: Section, env: dict | None) -> None:
@@ -710,12 +927,6 @@ def _study_failure(status: dict, section_id: str) -> str:
     return f"The {study} study failed in this run: {short}"
 
 
-BUILDERS = {
-    "environment": _environment, "table1": _table1, "phases": _phases, "scaling": _scaling,
-    "adaptive": _adaptive, "compare": _compare_and_cycling, "sweep": _sweep, "adaptive_pareto": _adaptive_pareto,
-    "stress": _stress,
-    "renders": _renders, "figure1": _figure1, "figure3": _figure3,
-}
 
 
 # ------------------------------------------------------------------------------------------
@@ -734,8 +945,9 @@ def build_report(out_dir) -> Path:
         env, env_error = None, f"{type(exc).__name__}: {exc}"
     status = inp.study_status()
     sections = []
-    for sid, title in SECTIONS:
-        sec = Section(sid, title)
+    for owned in report_sections():
+        sid = owned.id
+        sec = Section(sid, owned.title)
         failure = _study_failure(status, sid)
         if failure:
             sec.add("note", failure, level="error")
@@ -743,15 +955,15 @@ def build_report(out_dir) -> Path:
             if sid == "environment" and env_error:
                 sec.add("note", f"could not read environment.json: {env_error}", level="error")
             else:
-                BUILDERS[sid](inp, sec, env)
+                owned.load()(inp, sec, env)
         except Exception as exc:  # a broken input must not hide the other sections
-            sec.blocks.append(Block("note", f"could not build this section from {inp.data}: "
+            sec.blocks.append(Block("note", f"could not build this section from data/: "
                                             f"{type(exc).__name__}: {exc}", level="error"))
         sections.append(sec)
     template = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
                                  undefined=jinja2.StrictUndefined).get_template("report.html.j2")
     page = template.render(
-        sections=sections, env=env or {}, out_dir=str(out),
+        sections=sections, env=env or {},
         generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         scale=(env or {}).get("scale", "unknown"),
         n_missing=sum(s.missing for s in sections),

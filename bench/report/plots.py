@@ -48,6 +48,12 @@ def save_png(fig, path, dpi: int = 110):
     return path
 
 
+def file_uri(path, mime: str) -> str:
+    """Any image file (PNG, GIF) as a data URI of the given MIME type."""
+    with open(path, "rb") as fh:
+        return f"data:{mime};base64," + base64.b64encode(fh.read()).decode("ascii")
+
+
 def png_file_uri(path) -> str:
     """A PNG file (e.g. a pyvista render) as a data URI."""
     with open(path, "rb") as fh:
@@ -159,6 +165,24 @@ def _band(ax, stats: pd.DataFrame, x: str, label: str, color: str, horizontal: b
         ax.fill_between(stats[x], stats["lo"], stats["hi"], color=color, alpha=0.25, lw=0)
 
 
+def series_name(solver: str, mode: str) -> str:
+    """Legend text of a solver/mode group: 'grid' (not 'grid grid'), 'particles adaptive'."""
+    solver, mode = str(solver).strip(), str(mode).strip()
+    return solver if mode in ("", solver, "all") else f"{solver} {mode}"
+
+
+def relative_change(df: pd.DataFrame, col: str, by=("solver", "mode", "seed")) -> pd.Series:
+    """(x(t) - x(0)) / x(0) of each run (group `by`), x(0) its first time's value: a conserved total's drift
+    without the large offset of its absolute value."""
+    by = [b for b in by if b in df.columns]
+    values = pd.to_numeric(df[col], errors="coerce")
+    order = df.sort_values("time_s").index
+    first = values.loc[order].groupby([df.loc[order, b] for b in by]).transform("first") if by else \
+        pd.Series(values.loc[order].iloc[0], index=order)
+    first = first.reindex(df.index)
+    return (values - first) / first.where(first != 0)
+
+
 def _groups(df: pd.DataFrame):
     keys = [k for k in ("solver", "mode") if k in df.columns]
     if not keys:
@@ -187,8 +211,9 @@ def timeseries_plot(df: pd.DataFrame, panels=TIMESERIES_PANELS, title: str | Non
         for i, ((solver, mode), g) in enumerate(_groups(df)):
             stats = seed_spread(g, "time_s", col, by=())
             n_seeds = g["seed"].nunique() if "seed" in g else 1
-            _band(ax, stats, "time_s", f"{solver} {mode} ({n_seeds} seeds)".strip(), _color(solver, mode, i))
+            _band(ax, stats, "time_s", f"{series_name(solver, mode)} ({n_seeds} seeds)", _color(solver, mode, i))
         ax.set_xlabel("time (s)")
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
@@ -223,7 +248,7 @@ def profiles_plot(df: pd.DataFrame, time_s: float | None = None) -> str:
     for ax, (col, label) in zip(axes[0], panels):
         for i, ((solver, mode), g) in enumerate(_groups(at)):
             stats = seed_spread(g, "z", col, by=())
-            _band(ax, stats, "z", f"{solver} {mode}".strip(), _color(solver, mode, i), horizontal=True)
+            _band(ax, stats, "z", series_name(solver, mode), _color(solver, mode, i), horizontal=True)
         ax.set_xlabel(label)
         ax.grid(True, alpha=0.3)
     axes[0][0].set_ylabel("height z (m)")
@@ -236,6 +261,10 @@ def profiles_plot(df: pd.DataFrame, time_s: float | None = None) -> str:
 # ------------------------------------------------------------------------------------------
 # sweep: run time against error
 # ------------------------------------------------------------------------------------------
+ERROR_LABELS = {"error_self": "error against the method's finest run\n(relative L2 of cover and profile)",
+                "error_other": "error against the other method's finest run\n(relative L2 of cover and profile)"}
+
+
 def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_other"),
                 reference: pd.Series | None = None) -> str:
     """Wall time against error per method (and mode), with the Pareto front of each as a line.
@@ -256,7 +285,7 @@ def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_
         for i, (key, g) in enumerate(df.groupby(keys, sort=True)):
             key = key if isinstance(key, tuple) else (key,)
             method, mode = (key + ("",))[:2]
-            name = method if mode in ("", method) else f"{method} {mode}"
+            name = series_name(method, mode)
             color = _color(method, mode, i)
             ref = g["_reference"]
             for j, (param, gp) in enumerate(g[~ref].groupby("parameter", sort=True)):
@@ -280,7 +309,7 @@ def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_
             ax.set_xscale("log")
             ax.set_xlim(walls.min() / 1.3, walls.max() * 1.3)   # reference runs (vertical lines) included
         ax.set_xlabel("wall time (s); dotted: reference runs (zero error)")
-        ax.set_ylabel(err)
+        ax.set_ylabel(ERROR_LABELS.get(err, err))
         ax.set_title(titles.get(err, err), fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
@@ -291,15 +320,24 @@ def pareto_plot(df: pd.DataFrame, errors: Sequence[str] = ("error_self", "error_
 # ------------------------------------------------------------------------------------------
 # stress: stability map
 # ------------------------------------------------------------------------------------------
+STRIP_LABELS = {"dt": "time step dt (s)", "iterations": "PBF iterations", "heating_rate": "heating S$_e$ (K/s)",
+                "alpha_dt": "alpha dt (eq. 9)"}
+
+
 def stability_map(df: pd.DataFrame) -> str:
-    """One row per swept parameter: values on a log axis, green stable, red unstable."""
-    params = list(dict.fromkeys(df["parameter"]))
+    """One row per swept parameter: values on a log axis; green usable, orange stable but not usable
+    (the `usable` column, when present), red unstable."""
+    params = [p for p in dict.fromkeys(df["parameter"]) if not str(p).startswith("dt x ")]
     fig, axes = plt.subplots(len(params), 1, figsize=(8, 1.3 * len(params) + 0.8), squeeze=False)
     for ax, param in zip(axes[:, 0], params):
         g = df[df["parameter"] == param].sort_values("value")
         values = pd.to_numeric(g["value"], errors="coerce")
         stable = g["stable"].map(_truthy)
-        ax.scatter(values[stable], np.zeros(stable.sum()), s=90, color="#2ca02c", marker="o", label="stable")
+        usable = g["usable"].map(_truthy) if "usable" in g.columns else stable
+        ax.scatter(values[stable & usable], np.zeros((stable & usable).sum()), s=90, color="#2ca02c", marker="o",
+                   label="usable")
+        ax.scatter(values[stable & ~usable], np.zeros((stable & ~usable).sum()), s=90, color="#ff9f1c",
+                   marker="s", label="stable, not usable")
         ax.scatter(values[~stable], np.zeros((~stable).sum()), s=90, color="#d62728", marker="X", label="unstable")
         for v, ok, reason in zip(values, stable, g.get("reason", pd.Series([""] * len(g)))):
             if not ok and isinstance(reason, str) and reason:
@@ -308,12 +346,70 @@ def stability_map(df: pd.DataFrame) -> str:
         if (values > 0).all() and values.max() / values.min() > 20:
             ax.set_xscale("log")
         ax.set_yticks([])
-        ax.set_ylabel(param, rotation=0, ha="right", va="center")
+        ax.set_ylabel(STRIP_LABELS.get(param, param), rotation=0, ha="right", va="center")
         ax.set_ylim(-1, 1.6)
         ax.grid(True, axis="x", which="both", alpha=0.3)
     axes[0, 0].legend(fontsize=7, loc="upper left", ncol=2)
-    axes[-1, 0].set_xlabel("parameter value")
+    axes[-1, 0].set_xlabel("parameter value (units in the row label)")
     fig.tight_layout()
+    return to_data_uri(fig)
+
+
+MAP_AXES = {"iterations": "PBF solver iterations", "heating_rate": "ground heating rate S$_e$ (K/s, eq. 5)"}
+
+
+def stability_map_2d(df: pd.DataFrame, density_limit: float, energy_limit: float | None = None) -> str:
+    """One panel per 2-D map (parameter "dt x <other>"): cells on the (dt, other) grid coloured by the
+    largest per-step mean density error (log), red X where the run blew up, and a thick black line
+    around the usable cells (stable, density error <= density_limit, energy jumps within energy_limit)."""
+    maps = [p for p in dict.fromkeys(df["parameter"]) if isinstance(p, str) and p.startswith("dt x ")]
+    fig, axes = plt.subplots(1, len(maps), figsize=(5.8 * len(maps) + 1.2, 4.6), squeeze=False,
+                             layout="constrained")
+    err_col = "density_error_max" if "density_error_max" in df.columns else "density_error_mean"
+    norm = matplotlib.colors.LogNorm(vmin=1e-5, vmax=1.0)
+    image = None
+    for ax, name in zip(axes[0], maps):
+        other = name[len("dt x "):]
+        g = df[df["parameter"] == name]
+        xs = sorted(pd.to_numeric(g["dt"], errors="coerce").dropna().unique())
+        ys = sorted(pd.to_numeric(g[other], errors="coerce").dropna().unique())
+        err = np.full((len(ys), len(xs)), np.nan)
+        usable = np.zeros((len(ys), len(xs)), dtype=bool)
+        for r in g.itertuples():
+            i, j = ys.index(float(getattr(r, other))), xs.index(float(r.dt))
+            e = pd.to_numeric(getattr(r, err_col), errors="coerce")
+            stable = _truthy(r.stable)
+            err[i, j] = max(float(e), 1e-5) if stable and np.isfinite(e) else np.nan
+            usable[i, j] = bool(getattr(r, "usable", False)) if hasattr(r, "usable") else (
+                stable and np.isfinite(e) and e <= density_limit)
+            if not stable:
+                ax.plot(j, i, "X", color="#d62728", ms=14)
+            elif np.isfinite(e):
+                ax.text(j, i, f"{100 * float(e):.3g}%", ha="center", va="center", fontsize=8,
+                        color="white" if float(e) < 0.03 else "black")
+        image = ax.imshow(np.ma.masked_invalid(err), origin="lower", cmap="viridis", norm=norm, aspect="auto")
+        for i in range(len(ys)):          # the usable region's boundary: edges between usable and not
+            for j in range(len(xs)):
+                if not usable[i, j]:
+                    continue
+                for di, dj, seg in ((0, 1, ([j + .5, j + .5], [i - .5, i + .5])),
+                                    (0, -1, ([j - .5, j - .5], [i - .5, i + .5])),
+                                    (1, 0, ([j - .5, j + .5], [i + .5, i + .5])),
+                                    (-1, 0, ([j - .5, j + .5], [i - .5, i - .5]))):
+                    ni, nj = i + di, j + dj
+                    if not (0 <= ni < len(ys) and 0 <= nj < len(xs)) or not usable[ni, nj]:
+                        ax.plot(*seg, color="black", lw=2.5)
+        ax.set_xticks(range(len(xs)), [f"{v:g}" for v in xs])
+        ax.set_yticks(range(len(ys)), [f"{v:.3g}" for v in ys])
+        ax.set_xlabel("time step dt (s)")
+        ax.set_ylabel(MAP_AXES.get(other, other))
+        ax.set_title(f"dt against {MAP_AXES.get(other, other).split(' (')[0]}", fontsize=10)
+    if image is not None:
+        bar = fig.colorbar(image, ax=axes[0].tolist(), shrink=0.9)
+        bar.set_label("largest mean density error |rho/rho0 - 1| over the steps")
+    limits = f"density error <= {100 * density_limit:g}%" + (
+        f", no step more than {energy_limit:g}x the kinetic energy" if energy_limit else "")
+    fig.suptitle(f"inside the black line: usable ({limits}); red X: blew up", fontsize=10)
     return to_data_uri(fig)
 
 

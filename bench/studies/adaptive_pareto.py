@@ -48,11 +48,11 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_front
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_steps
 from pbf_cuda.scene import Scene, load_scene
 
@@ -314,12 +314,12 @@ def adaptive_pareto_command(
     seeds: Annotated[int, typer.Option(min=3, max=100, help="noise seeds per configuration (>= 3)")] = 3,
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
 ) -> None:
     """Adaptive variants against uniform runs at four spacings: seed-mean errors against a finer reference."""
     if scene not in SCENES:
         raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             result = run_adaptive_pareto(ctx, scene, seeds)
     cols = ["config", "particles", "ms_per_step", "error", "error_seed_spread", "e_base", "e_top", "e_profile",
@@ -330,5 +330,6 @@ def adaptive_pareto_command(
 
 
 register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
+               report=(ReportSection("adaptive_pareto", "Adaptive mode at equal error", "bench.report.build:_adaptive_pareto", 70),),
                outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_verdict.json"),
                command=adaptive_pareto_command))

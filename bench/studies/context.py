@@ -8,6 +8,12 @@ worker per visible GPU, pinned with CUDA_VISIBLE_DEVICES), or an existing schedu
 workers write into the run cache, which must then be a path every worker sees (a shared
 filesystem), and send back a small summary dict.  Runs already in the cache are not sent at all.
 ``--scheduler inline`` runs the missing specs one by one in this process, without dask (debugging).
+
+``--gpus all`` (or a count N) asks for dask-cuda's ``LocalCUDACluster`` instead: one worker per GPU (all
+visible GPUs, or the first N), one run at a time on each, every worker pinned to its GPU through
+CUDA_VISIBLE_DEVICES (dask-cuda gives worker i the list rotated to start at GPU i, and the solver
+uses the first visible device).  It needs the ``multigpu`` extra (dask-cuda) and a visible GPU;
+otherwise the command ends with exit code 2 naming ``--gpus``.
 """
 from __future__ import annotations
 
@@ -25,7 +31,8 @@ from bench.store.identity import REPO_ROOT
 from bench import environment
 from bench.studies.scales import Scale
 
-__all__ = ["StudyContext", "StudyError", "INLINE"]
+__all__ = ["StudyContext", "StudyError", "GpuError", "INLINE", "parse_gpus", "select_gpus", "visible_gpus",
+           "cuda_cluster"]
 
 INLINE = "inline"
 
@@ -36,6 +43,59 @@ class StudyError(RuntimeError):
 
 class SchedulerError(ValueError):
     """The --scheduler address is malformed or no dask scheduler answers there."""
+
+
+class GpuError(ValueError):
+    """--gpus cannot be honoured: a bad value, no GPU, fewer GPUs than asked, dask-cuda missing, or an
+    option that contradicts it."""
+
+
+GPUS_ALL = "all"
+
+
+def parse_gpus(text) -> str | int | None:
+    """--gpus: 'all' or a positive count; None stays None (GpuError otherwise)."""
+    if text is None:
+        return None
+    value = str(text).strip().lower()
+    if value == GPUS_ALL:
+        return GPUS_ALL
+    if value.isdigit() and 1 <= int(value) <= 1024:
+        return int(value)
+    shown = value if len(value) <= 40 else value[:37] + "..."
+    raise GpuError(f"'{shown}': expected 'all' or a number of GPUs (1, 2, ...)")
+
+
+def visible_gpus() -> list[str]:
+    """The GPUs this process may use: the entries of CUDA_VISIBLE_DEVICES when set, else 0..n-1 of
+    nvidia-smi's devices (none without a driver)."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [v.strip() for v in visible.split(",") if v.strip() and v.strip() != "-1"]
+    return [str(i) for i in range(environment.gpu_count())]
+
+
+def select_gpus(request: str | int, visible: list[str]) -> list[str]:
+    """The devices for `--gpus request` among `visible` ('all': every one; N: the first N)."""
+    if not visible:
+        raise GpuError(f"{request}: no CUDA GPU is visible here (nvidia-smi finds none, or "
+                       "CUDA_VISIBLE_DEVICES hides them); leave --gpus out to run on the CPU")
+    if request == GPUS_ALL:
+        return list(visible)
+    if request > len(visible):
+        raise GpuError(f"{request}: only {len(visible)} GPU(s) visible ({','.join(visible)})")
+    return list(visible[:request])
+
+
+def cuda_cluster(devices: list[str], env: dict):
+    """dask-cuda's LocalCUDACluster with one single-threaded worker per device (the default factory
+    of StudyContext.cuda_cluster_factory)."""
+    try:
+        from dask_cuda import LocalCUDACluster
+    except ImportError:
+        raise GpuError("needs dask-cuda, which is not installed: pip install 'cloudpbf[multigpu]'") from None
+    return LocalCUDACluster(CUDA_VISIBLE_DEVICES=",".join(devices), n_workers=len(devices), threads_per_worker=1,
+                            dashboard_address=None, silence_logs=logging.CRITICAL, env=env)
 
 
 _SCHEDULER = re.compile(r"^(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?$")
@@ -112,6 +172,8 @@ class StudyContext:
     workers: int | None = None
     scheduler: str | None = None
     quiet: bool = False
+    gpus: str | int | None = None
+    cuda_cluster_factory: object = None      # (devices, env) -> a dask cluster; None: dask-cuda's
 
     def __post_init__(self):
         self.out = Path(self.out).resolve()
@@ -120,6 +182,14 @@ class StudyContext:
             raise ValueError(f"workers = {self.workers}: expected an integer in [1, 4096]")
         if self.scheduler is not None:
             check_scheduler_address(self.scheduler)
+        self.gpus = parse_gpus(self.gpus)
+        if self.gpus is not None:
+            if self.scheduler is not None:
+                raise GpuError(f"{self.gpus}: --gpus starts its own cluster; it cannot be combined with --scheduler")
+            if self.workers is not None:
+                raise GpuError(f"{self.gpus}: --gpus sets one worker per GPU; leave --workers out")
+            if self.backend == "cpu":
+                raise GpuError(f"{self.gpus}: --gpus runs the particle solver on CUDA; --backend cpu contradicts it")
         self._client = None
         self._cluster = None
 
@@ -200,7 +270,27 @@ class StudyContext:
             except Exception as exc:
                 yield futures[future], exc
 
+    def gpu_devices(self) -> list[str]:
+        """The devices of --gpus (GpuError when they cannot be had); [] without --gpus."""
+        if self.gpus is None:
+            return []
+        return select_gpus(self.gpus, visible_gpus())
+
+    def check_gpus(self) -> None:
+        """Fail now, before any run, when --gpus cannot be honoured (no GPU, too few, no dask-cuda)."""
+        if self.gpus is None:
+            return
+        self.gpu_devices()
+        if self.cuda_cluster_factory is None:
+            try:
+                import dask_cuda  # noqa: F401
+            except ImportError:
+                raise GpuError(f"{self.gpus}: needs dask-cuda, which is not installed: "
+                               "pip install 'cloudpbf[multigpu]'") from None
+
     def n_workers(self) -> int:
+        if self.gpus is not None:
+            return len(self.gpu_devices())
         if self.workers:
             return int(self.workers)
         gpus = self._gpus()
@@ -220,6 +310,9 @@ class StudyContext:
             return "this process (inline, no dask)"
         if self.scheduler:
             return f"the dask scheduler at {self.scheduler}"
+        if self.gpus is not None:
+            devices = self.gpu_devices()
+            return f"a dask-cuda cluster of {len(devices)} GPU workers (GPUs {','.join(devices)})"
         gpus = self._gpus()
         if gpus and not self.workers:
             return f"a local dask cluster of {len(gpus)} GPU workers"
@@ -237,6 +330,12 @@ class StudyContext:
                     why = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
                     raise SchedulerError(f"no dask scheduler answered at {self.scheduler} within "
                                          f"{SCHEDULER_TIMEOUT_S:g} s ({why})") from None
+            elif self.gpus is not None:
+                devices = self.gpu_devices()
+                cores = os.cpu_count() or 1
+                factory = self.cuda_cluster_factory or cuda_cluster
+                self._cluster = factory(devices, _worker_env(max(1, cores // len(devices))))
+                self._client = Client(self._cluster)
             else:
                 gpus = [] if self.workers else self._gpus()
                 self._cluster = local_cluster(self.n_workers(), gpus)

@@ -32,8 +32,8 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.studies.registry import Study, register
 from bench.statistics import grid_for_scene
 from bench.studies.compare import SOLVER_OF_MODE, scene_pair
@@ -298,10 +298,10 @@ def cycling_command(
     seeds: Annotated[int, typer.Option(min=3, max=1000, help="noise seeds per mode (>= 3)")] = 3,
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    quiet: QuietOpt = False,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
 ) -> None:
     """Paper example 2: count the clouds' disappear/reappear cycles in both solvers (docs/cycling.md)."""
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frames = run_cycling(ctx, seeds)
     typer.echo(frames["cycling_cycles"][list(COLUMNS)].to_string(index=False))

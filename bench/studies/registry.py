@@ -13,9 +13,29 @@ import pkgutil
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-__all__ = ["Study", "register", "studies", "study", "demo_studies"]
+__all__ = ["Study", "ReportSection", "register", "studies", "study", "demo_studies", "report_sections"]
 
 SCALE_NAMES = ("smoke", "cpu", "gpu")
+
+
+@dataclass(frozen=True)
+class ReportSection:
+    """A section of the HTML report that a study owns.
+
+    id: the anchor in the page (other studies name it in their `sections` to feed it)
+    title: its heading
+    builder: "module:function" of builder(inputs, section, env), imported only when the report is built
+      (so the CLI does not import matplotlib); the report's builders live in bench.report.build
+    order: its place in the page (the report's own sections: environment 0, summary 5)
+    """
+    id: str
+    title: str
+    builder: str
+    order: int
+
+    def load(self) -> Callable:
+        module, _, name = self.builder.partition(":")
+        return getattr(importlib.import_module(module), name)
 
 
 @dataclass(frozen=True)
@@ -29,6 +49,8 @@ class Study:
     outputs: the files it writes under OUT/data
     scale: {field: {"smoke": v, "cpu": v, "gpu": v}}: its sizes, fields of every Scale
     command: a typer command function (the CLI registers it under `name`), or None
+    report: the report sections this study owns (ReportSection: id, title, builder, order); the report
+      shows them in order, whatever study feeds them
     """
     name: str
     order: int
@@ -37,6 +59,7 @@ class Study:
     outputs: tuple = ()
     scale: dict = field(default_factory=dict)
     command: Callable | None = None
+    report: tuple = ()
 
     def __post_init__(self):
         for name, values in self.scale.items():
@@ -77,6 +100,17 @@ def studies() -> tuple[Study, ...]:
 def demo_studies() -> tuple[Study, ...]:
     """The studies the demo runs, in order."""
     return tuple(s for s in studies() if s.run is not None)
+
+
+def report_sections() -> tuple[ReportSection, ...]:
+    """Every report section some study owns, in page order (ValueError when two own the same id)."""
+    found: dict[str, ReportSection] = {}
+    for s in studies():
+        for section in s.report:
+            if section.id in found:
+                raise ValueError(f"report section {section.id!r} is owned by two studies")
+            found[section.id] = section
+    return tuple(sorted(found.values(), key=lambda r: (r.order, r.id)))
 
 
 def study(name: str) -> Study:

@@ -7,7 +7,9 @@ NAME.unavailable.txt note with the reason instead of a PNG).
 * figure1_unsmoothed.png / figure1_smoothed.png: the paper's Figure 1, the smoothing_slab scene
   without (kappa = 0) and with temperature smoothing, seen from the front;
 * figure3_shape_energy.png: the paper's Figure 3, shape energy (eq. 20) of the adaptive run's
-  last state beside its cloud w.
+  last state beside its cloud w;
+* clouds_animation.gif and clouds_strip.png: the clouds developing, every stored state of the compare
+  study's non-adaptive seed-0 run (compare.ANIMATION_FRAMES of them), as a looping GIF and as one strip.
 """
 from __future__ import annotations
 
@@ -16,12 +18,21 @@ from pathlib import Path
 from bench import render, runs, statistics
 from bench.studies.compare import compare_specs
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_slab
 from pbf_cuda.scene import load_scene
 
 RENDERS = ("clouds_particles.png", "clouds_volume.png", "figure1_unsmoothed.png", "figure1_smoothed.png",
-           "figure3_shape_energy.png")
+           "figure3_shape_energy.png", "clouds_animation.gif", "clouds_strip.png")
+
+
+def animation_frames(res: runs.RunResult, scene) -> list[tuple[float, dict]]:
+    """(time s, state) of every stored state of a run, in time order."""
+    frames = []
+    for path in res.snapshot_paths():
+        step = int(path.stem.split("_")[-1])
+        frames.append((step * scene.time.dt, res.snapshot(step)))
+    return frames
 
 
 def slab_specs(ctx: StudyContext) -> tuple[runs.RunSpec, runs.RunSpec]:
@@ -71,6 +82,21 @@ def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Pat
         kappa = spec.scene.smoothing.kappa
         done[name] = _draw(render.render_particles, out / name, res, spec.scene, color_by="cloud", view="front",
                            title=f"smoothing_slab, kappa = {kappa:g}, step {res.step}")
+    gif = out / "clouds_animation.gif"
+    frames = animation_frames(res_fixed, fixed.scene)
+    if frames:
+        done["clouds_animation.gif"] = render.render_or_note(render.render_animation, gif, frames, fixed.scene,
+                                                             out_strip=out / "clouds_strip.png")
+    else:
+        runs.atomic_write_text(render.note_path(gif), f"the run {res_fixed.path.name} stored no states\n")
+        done["clouds_animation.gif"] = None
+    strip = out / "clouds_strip.png"
+    if done["clouds_animation.gif"] is None:      # the strip says why, as the animation does
+        runs.atomic_write_text(render.note_path(strip), render.note_path(gif).read_text())
+        strip.unlink(missing_ok=True)
+    else:
+        render.note_path(strip).unlink(missing_ok=True)
+    done["clouds_strip.png"] = strip if strip.is_file() else None
     done["figure3_shape_energy.png"] = _draw(render.render_shape_energy, out / "figure3_shape_energy.png",
                                              res_adaptive, adaptive.scene)
     for name, path in done.items():
@@ -79,5 +105,9 @@ def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Pat
 
 
 register(Study("renders", order=60, run=lambda ctx, scene: run_renders(ctx, scene),
-                sections=("renders", "figure1", "figure3"), outputs=tuple(f"renders/{name}" for name in RENDERS),
+                sections=("renders", "figure1", "figure3"),
+                report=(ReportSection("renders", "Cloud renders", "bench.report.build:_renders", 90),
+                        ReportSection("figure1", "Figure 1: temperature smoothing", "bench.report.build:_figure1", 100),
+                        ReportSection("figure3", "Figure 3: shape energy", "bench.report.build:_figure3", 110),),
+                outputs=tuple(f"renders/{name}" for name in RENDERS),
                 scale={"slab_particles": {"smoke": 2000, "cpu": 25_000, "gpu": None}}))     # Figure 1 slab

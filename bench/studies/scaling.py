@@ -26,7 +26,7 @@ from bench import runs
 from bench import environment
 from bench.cli_common import (Backend, BackendOpt, DEFAULT_OUT, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               parse_sizes, refusals, run_command, scene_arg, study_context)
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from pbf_cuda.scene import load_scene
 
 SCENE = "growing"
@@ -140,6 +140,7 @@ def pbf_scaling_command(
 
 
 register(Study("scaling", order=20, run=lambda ctx, scene: run_scaling(ctx), sections=("scaling",),
+                report=(ReportSection("scaling", "Scaling", "bench.report.build:_scaling", 30),),
                 outputs=("pbf_scaling.csv", "grid_scaling.csv"),
                 scale={"scaling_particles": {"smoke": (2000, 8000), "cpu": (10_000, 50_000, 250_000),
                                              "gpu": (250_000, 1_000_000, 4_000_000)},

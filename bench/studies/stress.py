@@ -10,10 +10,21 @@ error above pbf.max_density_error) or when particles leave the domain through a 
 names the reason, the step and the particle ids.  NaN never reaches the data: the failing state is not
 analysed, and max_speed / density_error_mean are those of the last good step.
 
-Outputs in OUT/data: stress.csv (parameter, value, stable, reason, step, particles, max_speed,
-density_error_mean, then the case's dt, iterations, heating_rate, phase_rate, alpha_dt, steps,
-last_good_step, device, commit, run_dir) and stress_summary.json (the largest dt up to which every
-tried dt is stable).
+Two 2-D maps follow: dt against the PBF iterations (parameter "dt x iterations") and dt against the
+heating rate (parameter "dt x heating_rate", multiples of the scene's rate); each case's row carries
+its dt, iterations and heating rate.
+
+Stable is not usable: a run can end without blowing up while its density constraint (eq. 1) is
+violated by more than the method tolerates.  A case is **usable** when it is stable, its mean density
+error |rho/rho0 - 1| stayed at most DENSITY_ERROR_LIMIT over every step, and no step multiplied the
+kinetic energy by more than ENERGY_JUMP_LIMIT (the runaway that precedes a blow-up; physical
+growth from the heating is far slower per step).
+
+Outputs in OUT/data: stress.csv (parameter, value, stable, usable, reason, step, particles, max_speed,
+density_error_mean (last step), density_error_max (largest per-step mean), energy_jump (largest
+per-step kinetic-energy ratio), then the case's dt, iterations, heating_rate, phase_rate, alpha_dt,
+steps, last_good_step, device, commit, run_dir) and stress_summary.json (the largest dt up to which
+every tried dt is stable, and the largest up to which every tried dt is usable).
 """
 from __future__ import annotations
 
@@ -21,10 +32,10 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, load_scene
 
@@ -32,6 +43,25 @@ SCENE = "growing"
 HEATING_FACTORS = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 MAX_HEATING_RATE = 100.0     # K/s: the scene schema's bound
 SUPERSATURATION = 1.2        # initial v / saturation of the alpha*dt cases: condensation from the first step
+DENSITY_ERROR_LIMIT = 0.01   # usable: mean |rho/rho0 - 1| at most 1% at every step (eq. 1)
+ENERGY_JUMP_LIMIT = 2.0      # usable: no step more than doubles the kinetic energy
+MAP_HEATING_FACTORS = (1.0, 10.0, 100.0)
+
+
+def usable_mask(frame: pd.DataFrame, density_limit: float = DENSITY_ERROR_LIMIT,
+                energy_limit: float = ENERGY_JUMP_LIMIT) -> pd.Series:
+    """Stable, density error within `density_limit` (the per-step maximum where recorded, else the last
+    step's) and kinetic-energy jumps within `energy_limit` (where recorded)."""
+    stable = frame["stable"].astype(str).str.lower().isin(("true", "1"))
+    density = pd.to_numeric(frame.get("density_error_mean", pd.Series(index=frame.index, dtype=float)),
+                            errors="coerce")
+    if "density_error_max" in frame.columns:     # the per-step maximum where recorded
+        density = pd.to_numeric(frame["density_error_max"], errors="coerce").fillna(density)
+    ok = stable & (density <= density_limit)
+    if "energy_jump" in frame.columns:
+        jump = pd.to_numeric(frame["energy_jump"], errors="coerce")
+        ok &= ~(jump > energy_limit)
+    return ok.fillna(False).astype(bool)
 
 
 def stress_cases(base: Scene, scale) -> list[tuple[str, float, Scene]]:
@@ -45,6 +75,13 @@ def stress_cases(base: Scene, scale) -> list[tuple[str, float, Scene]]:
     wet = base.replace(**{"atmosphere.initial_vapor_ratio": SUPERSATURATION})
     cases += [("alpha_dt", float(v), wet.replace(**{"atmosphere.phase_rate": float(v) / dt}))
               for v in scale.stress_alpha_dt]
+    for step in scale.stress_map_dt:
+        at = base.replace(**{"time.dt": float(step)})
+        cases += [("dt x iterations", float(step), at.replace(**{"pbf.iterations": int(it)}))
+                  for it in scale.stress_iterations]
+        cases += [("dt x heating_rate", float(step),
+                   at.replace(**{"atmosphere.heating_rate": min(rate * factor, MAX_HEATING_RATE)}))
+                  for factor in MAP_HEATING_FACTORS]
     return cases
 
 
@@ -58,17 +95,38 @@ def stress_specs(ctx: StudyContext, scene_name: str = SCENE) -> list[tuple[str, 
             for parameter, value, scene in stress_cases(base, scale)]
 
 
-def largest_stable_dt(frame: pd.DataFrame) -> dict:
-    """The largest dt such that it and every smaller tried dt ran stably."""
-    dts = frame[frame.parameter == "dt"].sort_values("value")
+def _largest_run(values, ok) -> tuple:
+    """(the largest value such that it and every smaller one is ok, the first one that is not)."""
     largest, first_bad = None, None
-    for row in dts.itertuples():
-        if not row.stable:
-            first_bad = row.value
+    for value, good in sorted(zip(values, ok)):
+        if not good:
+            first_bad = value
             break
-        largest = row.value
+        largest = value
+    return largest, first_bad
+
+
+def largest_stable_dt(frame: pd.DataFrame) -> dict:
+    """The largest dt such that it and every smaller tried dt ran stably, and the largest such that they
+    were all usable (usable_mask)."""
+    dts = frame[frame.parameter == "dt"].sort_values("value")
+    largest, first_bad = _largest_run(dts.value, dts.stable.astype(bool))
+    ok = dts["usable"].astype(bool) if "usable" in dts.columns else usable_mask(dts)
+    usable, first_unusable = _largest_run(dts.value, ok)
     return {"largest_stable_dt": largest, "smallest_unstable_dt": first_bad,
+            "largest_usable_dt": usable, "smallest_unusable_dt": first_unusable,
+            "density_error_limit": DENSITY_ERROR_LIMIT, "energy_jump_limit": ENERGY_JUMP_LIMIT,
             "dt_tried": dts.value.tolist()}
+
+
+def _energy_jump(steps: pd.DataFrame) -> float | None:
+    """Largest ratio of one step's kinetic energy to the previous step's (None: not recorded)."""
+    if "kinetic_energy" not in steps.columns or len(steps) < 2:
+        return None
+    ke = pd.to_numeric(steps["kinetic_energy"], errors="coerce").to_numpy(float)
+    prev, nxt = ke[:-1], ke[1:]
+    ok = (prev > 0) & pd.notna(prev) & pd.notna(nxt)
+    return float((nxt[ok] / prev[ok]).max()) if ok.any() else None
 
 
 def run_stress(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
@@ -83,12 +141,16 @@ def run_stress(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
             "parameter": parameter, "value": value, "stable": bool(res.stable), "reason": res.reason or "",
             "step": res.step, "particles": " ".join(map(str, res.particles)),
             "max_speed": last.get("max_speed"), "density_error_mean": last.get("density_error_mean"),
+            "density_error_max": (float(pd.to_numeric(steps["density_error_mean"], errors="coerce").max())
+                                  if "density_error_mean" in steps.columns else None),
+            "energy_jump": _energy_jump(steps),
             "dt": scene.time.dt, "iterations": scene.pbf.iterations,
             "heating_rate": scene.atmosphere.heating_rate, "phase_rate": scene.atmosphere.phase_rate,
             "alpha_dt": scene.atmosphere.phase_rate * scene.time.dt, "steps": spec.total_steps,
             "n_particles": res.max_particles, "last_good_step": res.last_good_step, "device": res.device,
             "commit": ctx.commit, "run_dir": str(res.path)})
     frame = pd.DataFrame(rows)
+    frame.insert(3, "usable", usable_mask(frame))
     runs.write_csv(frame, ctx.data / "stress.csv")
     runs.atomic_write_json(ctx.data / "stress_summary.json",
                            {**largest_stable_dt(frame), "scene": scene_name, "steps": ctx.scale.stress_steps,
@@ -102,23 +164,28 @@ STRESS_ALPHA_DT = (0.1, 1.0, 10.0, 100.0, 1000.0)                               
 
 def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
                    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-                   quiet: QuietOpt = False) -> None:
-    """Stability map: dt, iterations, heating rate and alpha*dt; the largest stable dt."""
+                   quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
+    """Stability map: dt, iterations, heating rate and alpha*dt, dt x iterations and dt x heating rate; the
+    largest stable and the largest usable dt."""
     import json
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_stress(ctx)
     typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
     summary = json.loads((ctx.data / "stress_summary.json").read_text())
-    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s")
+    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s; largest usable dt (density error <= "
+               f"{100 * DENSITY_ERROR_LIMIT:g}%): {summary['largest_usable_dt']} s")
     typer.echo(f"wrote {ctx.data / 'stress.csv'}")
 
 
 register(Study("stress", order=50, run=lambda ctx, scene: run_stress(ctx), sections=("stress",),
+               report=(ReportSection("stress", "Stability map", "bench.report.build:_stress", 80),),
                outputs=("stress.csv", "stress_summary.json"),
                scale={"stress_particles": {"smoke": 2000, "cpu": 10_000, "gpu": 100_000},
                       "stress_steps": {"smoke": 30, "cpu": 100, "gpu": 200},
                       "stress_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_DT),
                       "stress_iterations": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ITERATIONS),
-                      "stress_alpha_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ALPHA_DT)},
+                      "stress_alpha_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ALPHA_DT),
+                      "stress_map_dt": {"smoke": (2.0, 8.0, 32.0, 128.0), "cpu": (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0),
+                                        "gpu": (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)}},
                command=stress_command))

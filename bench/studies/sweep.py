@@ -30,16 +30,19 @@ import pandas as pd
 import typer
 
 from bench import runs
-from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
-                              SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
 from bench.statistics import grid_for_scene
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
 SCENE = "growing"
+SMOKE_BOX_SCENE = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
+                   "time.snapshot_every": 20}
+"""The smoke sweep's box (bench.studies.compare.SMOKE_BOX without its spacing)."""
 
 
 def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
@@ -47,9 +50,17 @@ def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
     scale = ctx.scale
     base = load_scene(scene_name)
     adaptive = load_scene(f"{scene_name}_adaptive")
-    counts = sorted(scale.sweep_particles)
+    box = getattr(scale, "sweep_box", None)
+    if box:   # spacings (m) in a small box; the adaptive level-0 particles at the same spacing
+        box = dict(box)
+        spacings = box.pop("spacings")
+        counts = sorted(spacings, reverse=True)                 # coarse to fine, as the counts
+        make = lambda scene, s, adaptive_twin=False: scene.replace(**box, **{"particles.spacing": float(s)})  # noqa: E731
+    else:
+        counts = sorted(scale.sweep_particles)
+        make = lambda scene, n, adaptive_twin=False: scale_scene(scene, n, scale.step_fraction)  # noqa: E731
     middle = counts[len(counts) // 2]
-    mid_scene = scale_scene(base, middle, scale.step_fraction)
+    mid_scene = make(base, middle)
     analysis, _ = grid_for_scene(mid_scene)
     plan = []
 
@@ -59,13 +70,13 @@ def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
         plan.append(dict(method="particles", parameter=parameter, value=value, mode=mode, spec=spec))
 
     for n in counts:
-        scene = scale_scene(base, n, scale.step_fraction)
+        scene = make(base, n)
         particles("spacing", scene.particles.spacing, "non-adaptive", scene)
-        scene = scale_scene(adaptive, n, scale.step_fraction)
+        scene = make(adaptive, n, True)
         particles("adaptive_spacing", scene.particles.spacing, "adaptive", scene)
     for it in scale.sweep_iterations:
         particles("iterations", it, "non-adaptive", mid_scene.replace(**{"pbf.iterations": int(it)}))
-    mid_adaptive = scale_scene(adaptive, middle, scale.step_fraction)
+    mid_adaptive = make(adaptive, middle, True)
     for alpha in scale.sweep_split_thresholds:
         merge = min(mid_adaptive.adaptive.merge_threshold, 0.5 * alpha)
         particles("split_threshold", alpha, "adaptive",
@@ -183,10 +194,10 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
 
 def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
                   backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-                  quiet: QuietOpt = False) -> None:
+                  quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
     """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
     import json
-    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet) as ctx:
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_sweep(ctx)
     typer.echo(frame[["method", "parameter", "value", "wall_s", "error_self", "error_other", "pareto"]]
@@ -196,6 +207,7 @@ def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scal
 
 
 register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
+                report=(ReportSection("sweep", "Run time against error", "bench.report.build:_sweep", 60),),
                 outputs=("sweep.csv", "sweep_verdict.json"),
                 scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
                        # threshold alpha at the middle spacing; grid cells along the longest axis
@@ -204,5 +216,8 @@ register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), 
                        "sweep_iterations": {"smoke": (2, 8), "cpu": (1, 2, 8, 16), "gpu": (1, 2, 8, 16)},
                        "sweep_split_thresholds": {"smoke": (0.15, 0.6), "cpu": (0.1, 0.2, 0.5, 1.0),
                                                   "gpu": (0.1, 0.2, 0.5, 1.0)},
-                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)}},
+                       "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)},
+                       # smoke: the compare study's small box (clouds form there), spacings in m instead of counts
+                       "sweep_box": {"smoke": {**SMOKE_BOX_SCENE, "spacings": (110.0, 100.0, 90.0)},
+                                     "cpu": None, "gpu": None}},
                 command=sweep_command))

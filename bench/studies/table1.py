@@ -26,7 +26,7 @@ from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               refusals, study_context)
 from bench.studies.context import StudyContext
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
 from pbf_cuda.scene import load_scene
 
@@ -110,4 +110,6 @@ def table1_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
 
 
 register(Study("table1", order=10, run=lambda ctx, scene: run_table1(ctx), sections=("table1", "phases"),
+                report=(ReportSection("table1", "Table 1: phase timings against the paper", "bench.report.build:_table1", 10),
+                        ReportSection("phases", "Per-phase cost", "bench.report.build:_phases", 20),),
                 outputs=("table1.csv",), command=table1_command))

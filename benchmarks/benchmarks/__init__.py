@@ -1,0 +1,1 @@
+"""asv benchmarks of cloudpbf (see docs/benchmarks.md)."""
