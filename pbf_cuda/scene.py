@@ -126,6 +126,10 @@ class PBF:
     divergence_tolerance: float = _spec(0.0, 0.0, 1.0, "",
                                         "the velocity projection stops when RMS(div v) dt, the relative density "
                                         "change per step, is below this (0: always divergence_iterations)")
+    gradient_correction: bool = _spec(False, doc="velocity projection: corrected kernel gradients L_i grad W_ij "
+                                                 "(Bonet & Lok 1999) in its divergence, exact for every linear "
+                                                 "velocity field on a disordered particle set, so the projection "
+                                                 "removes compression only, not flow the plain SPH divergence misreads")
     unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces only: a closed domain "
                                        "needs the bilateral constraint, or heated air leaves a rarefied layer)")
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")

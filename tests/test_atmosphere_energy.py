@@ -156,6 +156,43 @@ def test_gravity_wave_frequency_of_higher_modes(modes):
     assert energy.max() <= 1.02 * energy[0]
 
 
+def test_gradient_correction_keeps_the_gravity_wave_that_the_plain_divergence_drains():
+    # The plain SPH divergence misreads the smooth wave on the disordered particle set and the projection removes
+    # what it misreads: mode (1, 2) keeps 29% of its energy over two periods (measured at this commit). With the
+    # corrected divergence (pbf.gradient_correction) it keeps 96-105% (measured), and the period is still right.
+    global load_scene
+    plain = load_scene
+    try:
+        load_scene = lambda name: plain(name).replace(**{"pbf.gradient_correction": True})  # noqa: E731
+        energy, period, expected = gravity_wave(1, 2, periods=2.0)
+    finally:
+        load_scene = plain
+    assert period == pytest.approx(expected, rel=0.03)
+    assert energy.min() >= 0.9 * energy[0] and energy.max() <= 1.1 * energy[0]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradient_correction_keeps_momentum_and_never_adds_kinetic_energy(backend):
+    # Each row of the corrected Jacobian is sum_j a_ij (v_i - v_j), so J^T mu sums to zero over a periodic box
+    # (no walls): the projection moves no momentum; and it stays M-orthogonal, so kinetic energy cannot grow.
+    scene = periodic_box(0.0).replace(**{"pbf.gradient_correction": True, "pbf.scorr_k": 0.0})
+    rng = np.random.default_rng(3)
+    base = Simulation(scene, backend="cpu")
+    st = base.state()
+    st["velocity"] = rng.normal(0.0, 0.01, st["velocity"].shape).astype(np.float32)
+    sim = Simulation.from_arrays(scene, st, backend=backend)
+    m = st["mass"].astype(np.float64)[:, None]
+    p0 = (m * st["velocity"]).sum(0)
+    scale = float((m * np.abs(st["velocity"])).sum())
+    ke = [float((0.5 * m * st["velocity"].astype(np.float64) ** 2).sum())]
+    for _ in range(20):
+        sim.step(1)
+        v = sim.state()["velocity"].astype(np.float64)
+        ke.append(float((0.5 * m * v ** 2).sum()))
+        assert np.abs((m * v).sum(0) - p0).max() < 1e-6 * scale
+    assert max(ke[1:]) <= ke[0] and ke[-1] < 0.5 * ke[0]     # the random field is mostly compressive
+
+
 def heated_box(steps=100, backend="cpu"):
     """A dry, closed, completely filled 800 x 3200 x 800 m atmosphere heated from the ground (no smoothing)."""
     scene = load_scene("growing").replace(**{

@@ -44,6 +44,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(bool, velocity_projection, "", false)                /* pbf.projection == "velocity" */                      \
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \
     S(float, divergence_tolerance, "pbf.divergence_tolerance", 0.0f)                                               \
+    S(bool, gradient_correction, "pbf.gradient_correction", false)                                                 \
     S(float, xsph, "pbf.xsph", 0.01f)                      /* XSPH viscosity c */                                  \
     S(float, viscosity, "pbf.viscosity", 0.0f)             /* kinematic viscosity nu, m^2/s */                     \
     S(float, vorticity, "pbf.vorticity", 0.0f)             /* vorticity confinement epsilon, m/s */                \

@@ -189,10 +189,15 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     Float4* g = raw(d.vel_tmp);
     Float4* v = raw(d.vel);
     float* mu = raw(d.cg_mu);
-    parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, mu, g});
+    float* L = nullptr;   // gradient correction (pbf_constraints.h), at this step's predicted positions
+    if (d.p.gradient_correction) {
+        L = raw(d.grad_correction);
+        parallel_for(n, GradientCorrection<Policy>{grid, fl, bnd, radii, cp, L});
+    }
+    parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, mu, g, L});
     parallel_for(n, AddVelocity{g, v});
     // r = -J v, z = r / diag, p = z
-    parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, v, r, diag});
+    parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, v, r, diag, L});
     parallel_for(n, CgStart{r, diag, p});
     double rz = reduce_over(n, CgDot{r, p}, 0.0, thrust::plus<double>());
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
@@ -204,8 +209,8 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
         return rr <= tol2;
     };
     for (int it = 0; it < d.p.divergence_iterations && rz > 0.0 && !converged(); ++it) {
-        parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, p, g});           // g = M^-1 J^T p
-        parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, g, q, nullptr});   // q = A p
+        parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, p, g, L});           // g = M^-1 J^T p
+        parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, g, q, nullptr, L});   // q = A p
         double pq = reduce_over(n, CgDot{p, q}, 0.0, thrust::plus<double>());
         // A direction whose Rayleigh quotient pq / p.D.p is tiny lies in the near-null space of A (modes the
         // SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would

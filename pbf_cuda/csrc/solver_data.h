@@ -37,6 +37,7 @@ struct SolverData {
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
+    dvec<float> grad_correction;             // L_i (symmetric 3x3, 6 floats per particle) of the projection's Jacobian
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
     dvec<uint32_t> split_count, split_slot, split_candidates, merge_partner;
@@ -74,6 +75,7 @@ struct SolverData {
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);
             cg_mu.assign(cap, 0.0f);
+            if (p.gradient_correction) grad_correction.resize(6 * cap);
         }
         if (p.thermodynamics) {
             temperature.resize(cap); vapor.resize(cap); cloud.resize(cap);
