@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from bench.statistics import grid_for_scene, particle_diagnostics
-from bench.studies.cycling import CPU_OVERRIDES, count_cycles
+from bench.studies.cycling import CPU_OVERRIDES, count_cycles, cycle_budgets
 from grid_baseline import GridSimulation
 from grid_baseline.model import diurnal_integral, initial_state, make_aux, params_from_scene, physics
 from pbf_cuda import Simulation
@@ -233,9 +233,15 @@ def test_report_shows_the_cycling_study(tmp_path):
     import pandas as pd
     pd.DataFrame(rows).to_csv(data / "cycling_timeseries.csv", index=False)
     pd.DataFrame(cycles).to_csv(data / "cycling_cycles.csv", index=False)
+    frame = pd.DataFrame(rows).assign(total_water=1e5, rain_total=0.0, water_relaxation_total=0.0)
+    cycle_budgets(frame).assign(device="cpu", commit="abc").to_csv(data / "cycling_budgets.csv", index=False)
+    (data / "renders").mkdir()
+    import matplotlib.pyplot as plt
+    plt.imsave(data / "renders" / "cycling_grid_peak.png", np.zeros((4, 4, 3)))
     section = build_report(tmp_path).read_text().split('<section id="compare"', 1)[1].split("<section", 1)[0]
     assert "clouds that disappear and reappear" in section and "cycling_cycles.csv" in section
     assert "data:image/png" in section and "could not build" not in section
+    assert "cycling_budgets.csv" in section and "at its first cover peak" in section
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])

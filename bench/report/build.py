@@ -689,6 +689,23 @@ def _cycling(inp: Inputs, sec: Section) -> None:
         sec.add("table", _table(pd.DataFrame(rows)), caption=(
             f"Full cycles per run from {path.name}: after the cover first reaches half its peak, a fall below "
             "20% of the peak followed by a climb back above 50%; mean [95% confidence interval, t over seeds]."))
+    budgets, bpath = inp.csv("cycling_budgets")
+    if budgets is not None and len(budgets):
+        shown = budgets.copy()
+        shown["closure"] = shown["closure"].map(lambda x: f"{x:.1e}")
+        keep = ["mode", "seed", "cycle", "start_s", "peak_s", "min_s", "end_s", "peak_cover", "rain", "relaxation",
+                "d_total_water", "closure", "latent_heat"]
+        sec.add("table", _table(shown[[c for c in keep if c in shown.columns]].round(3)), caption=(
+            f"The water budget over each full cycle ({bpath.name}, docs/cycling.md C4), kg: rain removed, "
+            "vapor added by the relaxation (negative: removed), the change of the solver's own total water, and "
+            "closure = (change - (relaxation - rain)) / mean total water; latent heat released, K (eq. 11)."))
+    pairs = [(f"cycling_{mode}_{tag}", f"Example 2, {mode.replace('-', ' ')} "
+              f"{'at its first cover peak' if tag == 'peak' else 'at the clearest moment after that peak'} "
+              "(seed 0; bench.studies.cycling.cycle_states)")
+             for mode in ("non-adaptive", "adaptive", "grid") for tag in ("peak", "min")]
+    present = [(name, caption) for name, caption in pairs if inp.render(name)[0] is not None]
+    if present:
+        _render_blocks(inp, sec, present)
 
 
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
