@@ -185,7 +185,9 @@ struct GradientCorrection {
 // The two halves of A = J M^-1 J^T for the velocity projection's conjugate gradient solve
 // (pbf_constraints_launch.h: project_velocity): ApplyJT g_i = (M^-1 J^T p)_i, and ApplyJ q_i = (J g)_i together
 // with the Jacobi preconditioner diag_i = sum_k |grad_k C_i|^2 / m_k.
-template <class Policy>
+// Corrected: the Jacobian with the gradient correction L (GradientCorrection above); a template parameter, so the
+// plain projection compiles to exactly the code it had without the option.
+template <class Policy, bool Corrected = false>
 struct ApplyJT {
     GridGeometry grid;
     CellRanges fluid;
@@ -194,17 +196,17 @@ struct ApplyJT {
     ConstraintParams cp;
     const float* p;
     Float4* g;
-    const float* correction;   // L (gradient correction), nullptr: plain gradients
+    const float* correction;   // L, read when Corrected
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = p[i];
-        Vec3 dv;
-        if (!correction) {
-            dv = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
-                                        [&](uint32_t j, float, float mj, float) { return li * mj / mi + p[j]; });
+        if constexpr (!Corrected) {
+            Vec3 dv = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
+                                             [&](uint32_t j, float, float mj, float) { return li * mj / mi + p[j]; });
+            g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
         } else {
             // (M^-1 J^T p)_i rho0 = L_i (sum_j p_i m_j / m_i grad W_ij + walls) + sum_j p_j L_j grad W_ij
             Vec3 own{0, 0, 0}, others{0, 0, 0};
@@ -216,13 +218,13 @@ struct ApplyJT {
                     others += p[j] * (Sym3::load(correction, j) * gw);
                 },
                 [&](Vec3 r, float r2, float mb) { own += (li * mb / mi) * Policy::grad_W(r, r2, hi, cp.h0); });
-            dv = Sym3::load(correction, i) * own + others;
+            Vec3 dv = Sym3::load(correction, i) * own + others;
+            g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
         }
-        g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
     }
 };
 
-template <class Policy>
+template <class Policy, bool Corrected = false>
 struct ApplyJ {
     GridGeometry grid;
     CellRanges fluid;
@@ -232,7 +234,7 @@ struct ApplyJ {
     const Float4* u;
     float* q;
     float* diag;               // nullptr: not written
-    const float* correction;   // L (gradient correction), nullptr: plain gradients
+    const float* correction;   // L, read when Corrected
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
@@ -241,19 +243,19 @@ struct ApplyJ {
         Vec3 ui = xyz(u[i]);
         float div = 0.0f;
         JacobianRow row;
-        const bool corrected = correction != nullptr;
-        const Sym3 li = corrected ? Sym3::load(correction, i) : Sym3{1, 0, 0, 1, 0, 1};
+        Sym3 li{1, 0, 0, 1, 0, 1};
+        if constexpr (Corrected) li = Sym3::load(correction, i);
         for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
             [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
                 if (j == i) return;
                 Vec3 gw = Policy::grad_W(r, r2, hi, hj);
-                if (corrected) gw = li * gw;
+                if constexpr (Corrected) gw = li * gw;
                 div += mj * dot(ui - xyz(u[j]), gw);
                 if (diag) row.add_fluid(gw, mj, cp.inv_rest_density);
             },
             [&](Vec3 r, float r2, float mb) {
                 Vec3 gw = Policy::grad_W(r, r2, hi, cp.h0);
-                if (corrected) gw = li * gw;
+                if constexpr (Corrected) gw = li * gw;
                 div += mb * dot(ui, gw);
                 if (diag) row.add_wall(gw, mb, cp.inv_rest_density);
             });

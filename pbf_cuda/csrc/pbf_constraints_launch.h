@@ -175,7 +175,7 @@ void viscosity_vorticity(SolverData& d) {
 // The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
 // Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
 // v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
-template <class Policy>
+template <class Policy, bool Corrected>
 void solve_divergence(SolverData& d, const CellRanges& bnd) {
     CellRanges fl = d.fluid_ranges(d.pred);
     const std::size_t n = d.n;
@@ -190,14 +190,14 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     Float4* v = raw(d.vel);
     float* mu = raw(d.cg_mu);
     float* L = nullptr;   // gradient correction (pbf_constraints.h), at this step's predicted positions
-    if (d.p.gradient_correction) {
+    if constexpr (Corrected) {
         L = raw(d.grad_correction);
         parallel_for(n, GradientCorrection<Policy>{grid, fl, bnd, radii, cp, L});
     }
-    parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, mu, g, L});
+    parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
     parallel_for(n, AddVelocity{g, v});
     // r = -J v, z = r / diag, p = z
-    parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, v, r, diag, L});
+    parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L});
     parallel_for(n, CgStart{r, diag, p});
     double rz = reduce_over(n, CgDot{r, p}, 0.0, thrust::plus<double>());
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
@@ -209,8 +209,8 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
         return rr <= tol2;
     };
     for (int it = 0; it < d.p.divergence_iterations && rz > 0.0 && !converged(); ++it) {
-        parallel_for(n, ApplyJT<Policy>{grid, fl, bnd, radii, cp, p, g, L});           // g = M^-1 J^T p
-        parallel_for(n, ApplyJ<Policy>{grid, fl, bnd, radii, cp, g, q, nullptr, L});   // q = A p
+        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L});           // g = M^-1 J^T p
+        parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L});   // q = A p
         double pq = reduce_over(n, CgDot{p, q}, 0.0, thrust::plus<double>());
         // A direction whose Rayleigh quotient pq / p.D.p is tiny lies in the near-null space of A (modes the
         // SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
@@ -236,7 +236,10 @@ void project_velocity(SolverData& d, const CellRanges& walls) {
     const Vec3 gravity = gravity_of(d.p);
     if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
         parallel_for(d.n, AddAcceleration{raw(d.vel), d.p.dt * gravity});
-    solve_divergence<Policy>(d, walls);
+    if (d.p.gradient_correction)
+        solve_divergence<Policy, true>(d, walls);
+    else
+        solve_divergence<Policy, false>(d, walls);
     d.clock.end(kPhaseSolver);
 }
 
