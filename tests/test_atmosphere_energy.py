@@ -159,12 +159,13 @@ def test_gravity_wave_frequency_of_higher_modes(modes):
 def test_gradient_correction_keeps_the_gravity_wave_that_the_plain_divergence_drains():
     # The plain SPH divergence misreads the smooth wave on the disordered particle set and the projection removes
     # what it misreads: mode (1, 2) keeps 29% of its energy over two periods (measured at this commit). With the
-    # corrected divergence (pbf.gradient_correction) it keeps 96-105% (measured), and the period is still right.
+    # corrected divergence (pbf.gradient_correction) it keeps 96-105% over two (measured), and the period is still
+    # right. One period here (the CI budget).
     global load_scene
     plain = load_scene
     try:
         load_scene = lambda name: plain(name).replace(**{"pbf.gradient_correction": True})  # noqa: E731
-        energy, period, expected = gravity_wave(1, 2, periods=2.0)
+        energy, period, expected = gravity_wave(1, 2, periods=1.0)
     finally:
         load_scene = plain
     assert period == pytest.approx(expected, rel=0.03)
