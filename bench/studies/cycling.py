@@ -63,6 +63,35 @@ RENDER_SNAPSHOTS = 10_000
 CLOUD_RENDER_THRESHOLD = 1e-6  # kg/kg: a cloudy particle in the compact render states
 
 
+def _cycle_ends(c: np.ndarray, disappear: float, reappear: float, min_peak: float) -> tuple[int, list]:
+    """The one rule of a full cycle, on a validated cover array c: (start, [(low_at, back_at), ...]).
+
+    peak = c.max(); counting starts at `start`, the first index where c reaches reappear x peak; each full
+    cycle ends with a fall below disappear x peak (first at low_at) and a climb back to reappear x peak
+    (first at back_at).  A series whose peak is below `min_peak` (or 0) has no cycles."""
+    peak = float(c.max())
+    start = int(np.argmax(c >= reappear * peak))
+    ends, low_at = [], None
+    if peak <= 0.0 or peak < min_peak:
+        return start, ends
+    for i in range(start, c.size):
+        if low_at is None and c[i] < disappear * peak:
+            low_at = i
+        elif low_at is not None and c[i] >= reappear * peak:
+            ends.append((low_at, i))
+            low_at = None
+    return start, ends
+
+
+def _cover_array(cover, disappear: float, reappear: float) -> np.ndarray:
+    c = np.asarray(cover, dtype=np.float64)
+    if not (0.0 <= disappear < reappear <= 1.0):
+        raise ValueError(f"disappear = {disappear}, reappear = {reappear}: need 0 <= disappear < reappear <= 1")
+    if c.size == 0 or not np.isfinite(c).all():
+        raise ValueError("cover: expected a non-empty series of finite values")
+    return c
+
+
 def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR, min_peak: float = MIN_PEAK) -> dict:
     """Full disappear/reappear cycles of a cloud-cover series (fractions in [0, 1], in time order).
 
@@ -70,23 +99,12 @@ def count_cycles(cover, disappear: float = DISAPPEAR, reappear: float = REAPPEAR
     a cycle is then a fall below disappear x peak followed by a climb back to reappear x peak or more.
     A series whose peak is below `min_peak` counts no cycles (at CPU scale one column is 0.7% of the sky).
     Returns cycles, peak_cover, min_cover (the smallest value after the start; 0 for a cloudless series)."""
-    c = np.asarray(cover, dtype=np.float64)
-    if not (0.0 <= disappear < reappear <= 1.0):
-        raise ValueError(f"disappear = {disappear}, reappear = {reappear}: need 0 <= disappear < reappear <= 1")
-    if c.size == 0 or not np.isfinite(c).all():
-        raise ValueError("cover: expected a non-empty series of finite values")
+    c = _cover_array(cover, disappear, reappear)
     peak = float(c.max())
     if peak <= 0.0:
         return {"cycles": 0, "peak_cover": 0.0, "min_cover": 0.0}
-    start = int(np.argmax(c >= reappear * peak))
-    cycles, down = 0, False
-    for value in (c[start:] if peak >= min_peak else ()):
-        if not down and value < disappear * peak:
-            down = True
-        elif down and value >= reappear * peak:
-            down = False
-            cycles += 1
-    return {"cycles": cycles, "peak_cover": peak, "min_cover": float(c[start:].min())}
+    start, ends = _cycle_ends(c, disappear, reappear, min_peak)
+    return {"cycles": len(ends), "peak_cover": peak, "min_cover": float(c[start:].min())}
 
 
 def cycle_windows(cover, times, disappear: float = DISAPPEAR, reappear: float = REAPPEAR,
@@ -97,24 +115,17 @@ def cycle_windows(cover, times, disappear: float = DISAPPEAR, reappear: float = 
     first time) through its clouds' rise and peak, their decay below disappear x peak, to the moment
     the next generation's cover is back at reappear x peak.  Returns one dict per full cycle: start_s,
     peak_s, min_s (the clearest moment after the peak), end_s (s), peak_cover, min_cover."""
-    c = np.asarray(cover, dtype=np.float64)
+    c = _cover_array(cover, disappear, reappear)
     t = np.asarray(times, dtype=np.float64)
     if c.shape != t.shape:
         raise ValueError(f"cover has {c.size} values, times {t.size}")
-    counted = count_cycles(c, disappear, reappear, min_peak)
-    if counted["cycles"] == 0:
-        return []
-    peak = counted["peak_cover"]
-    windows, start, down, low_at = [], 0, False, None
-    for i in range(int(np.argmax(c >= reappear * peak)), c.size):
-        if not down and c[i] < disappear * peak:
-            down, low_at = True, i
-        elif down and c[i] >= reappear * peak:
-            top = start + int(np.argmax(c[start:low_at + 1]))
-            low = top + int(np.argmin(c[top:i + 1]))
-            windows.append({"start_s": float(t[start]), "peak_s": float(t[top]), "min_s": float(t[low]),
-                            "end_s": float(t[i]), "peak_cover": float(c[top]), "min_cover": float(c[low])})
-            down, start = False, low_at
+    windows, start = [], 0
+    for low_at, back_at in _cycle_ends(c, disappear, reappear, min_peak)[1]:
+        top = start + int(np.argmax(c[start:low_at + 1]))
+        low = top + int(np.argmin(c[top:back_at + 1]))
+        windows.append({"start_s": float(t[start]), "peak_s": float(t[top]), "min_s": float(t[low]),
+                        "end_s": float(t[back_at]), "peak_cover": float(c[top]), "min_cover": float(c[low])})
+        start = low_at
     return windows
 
 
@@ -122,8 +133,8 @@ def cycle_budgets(series: pd.DataFrame) -> pd.DataFrame:
     """The water budget of every full cycle (docs/cycling.md C4) of every run in a cycling time series.
 
     For each solver, mode, seed and cycle (:func:`cycle_windows`) the changes over the window, in kg:
-    total water (the solver's own total of vapor + cloud, ``budget_total_water``, else ``total_water``), rain (C3, removed), relaxation (C2, added; negative
-    when the forcing dries the air), and closure = d total_water - (relaxation - rain) as a fraction of
+    total water (the solver's own total of vapor + cloud, ``budget_total_water``, else ``total_water``),
+    rain (C3, removed), relaxation (C2, added; negative when the forcing dries the air), and closure = d total_water - (relaxation - rain) as a fraction of
     the window's mean total water (0 up to rounding when the run conserves water); for particle runs
     also the latent heat released (K, mass-weighted mean warming, eq. 11).  Rows in time order."""
     water = "budget_total_water" if "budget_total_water" in series.columns else "total_water"
@@ -151,9 +162,8 @@ def cycle_budgets(series: pd.DataFrame) -> pd.DataFrame:
                                    else float("nan"))}
             rows.append(row)
     return pd.DataFrame(rows, columns=["solver", "mode", "seed", "cycle", "start_s", "peak_s", "min_s", "end_s",
-                                       "peak_cover",
-                                       "min_cover", "d_total_water", "rain", "relaxation", "closure", "max_lwp",
-                                       "latent_heat"])
+                                       "peak_cover", "min_cover", "d_total_water", "rain", "relaxation", "closure",
+                                       "max_lwp", "latent_heat"])
 
 
 def render_cycle_states(states_dir, out_dir, scene_name: str = "cycling", cpu: bool = False) -> list:
@@ -252,7 +262,7 @@ def cycle_states(cycles: pd.DataFrame, budgets: pd.DataFrame, out_dir, seed: int
             else:
                 compact = {"cloud": state["cloud"].astype(np.float32),
                            **{k: state[k] for k in ("cell_size", "origin") if k in state}}
-            compact.update(time_s=state["time_s"], step=state["step"], cover=np.float64(row.peak_cover))
+            compact.update(time_s=state["time_s"], step=state["step"])
             target = out_dir / f"cycle_{row.mode}_{tag}.npz"
             np.savez_compressed(target, **compact)
             written.append(target)
@@ -310,8 +320,8 @@ def cycling_command(
     typer.echo(f"wrote {ctx.data / 'cycling_cycles.csv'}, cycling_timeseries.csv, cycling_budgets.csv")
 
 
-register(Study("cycling", order=35, sections=("compare",), outputs=("cycling_cycles.csv", "cycling_timeseries.csv", "cycling_budgets.csv"),
-               command=cycling_command))
+register(Study("cycling", order=35, sections=("compare",),
+               outputs=("cycling_cycles.csv", "cycling_timeseries.csv", "cycling_budgets.csv"), command=cycling_command))
 
 
 def main(argv=None) -> int:
