@@ -418,6 +418,9 @@ def _cross_checks(scene: Scene, source: str):
                 raise SceneError(
                     f"{source}: atmosphere.lapse_rate = {a.lapse_rate} K/m gives T0 = {t:.1f} K at y = {y} m, "
                     f"outside the saturation formula's range (T + C > 0, T >= 100 K)")
+    if scene.pbf.gradient_correction and scene.pbf.projection != "velocity":
+        raise SceneError(f"{source}: pbf.gradient_correction corrects the velocity projection's divergence; it needs "
+                         f"pbf.projection = 'velocity' (got '{scene.pbf.projection}')")
     if scene.wave is not None and scene.domain.boundary[1] != "wall":
         raise SceneError(f"{source}: [wave] needs domain.boundary[1] = 'wall'")
 

@@ -194,6 +194,12 @@ def test_gradient_correction_keeps_momentum_and_never_adds_kinetic_energy(backen
     assert max(ke[1:]) <= ke[0] and ke[-1] < 0.5 * ke[0]     # the random field is mostly compressive
 
 
+def test_gradient_correction_without_the_velocity_projection_is_refused_by_name():
+    from pbf_cuda.scene import SceneError
+    with pytest.raises(SceneError, match="pbf.gradient_correction.*pbf.projection = 'velocity'"):
+        load_scene("dam_break", **{"pbf.gradient_correction": True})
+
+
 def heated_box(steps=100, backend="cpu"):
     """A dry, closed, completely filled 800 x 3200 x 800 m atmosphere heated from the ground (no smoothing)."""
     scene = load_scene("growing").replace(**{
