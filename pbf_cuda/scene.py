@@ -42,7 +42,7 @@ BOUNDARY_KINDS = ("periodic", "wall")
 SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
 VAPOR_PROFILES = ("relative", "uniform")
 PROJECTIONS = ("position", "velocity")
-REFINEMENT_CRITERIA = ("paper", "lookahead")
+REFINEMENT_CRITERIA = ("paper", "lookahead", "thermal")
 
 
 class SceneError(ValueError):
@@ -200,7 +200,9 @@ class Adaptive:
     criterion: str = _spec("paper", choices=REFINEMENT_CRITERIA,
                            doc="what E of eq. 20 measures: 'paper': the cloud water w; 'lookahead': the cloud water "
                                "the particle would hold after rising lookahead_height dry-adiabatically, "
-                               "max(w, v + w - q_s(T - Gamma_d dz)), so thermals are refined before they condense")
+                               "max(w, v + w - q_s(T - Gamma_d dz)), so thermals are refined before they condense; "
+                               "'thermal': max(w, (T - T0(y)) / Q), the heat excess over the initial profile as the "
+                               "cloud water that would release it, so heated air is refined from the ground up")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
     min_distance: float = _spec(0.35, 0.0, 0.5, "",
@@ -410,6 +412,9 @@ def _cross_checks(scene: Scene, source: str):
                 f"adaptive.split_threshold = {scene.adaptive.split_threshold}")
         if scene.atmosphere is None:
             raise SceneError(f"{source}: adaptive.enabled needs an [atmosphere] section (the shape energy uses cloud w)")
+        if scene.adaptive.criterion == "thermal" and scene.atmosphere.latent_heat <= 0.0:
+            raise SceneError(f"{source}: adaptive.criterion = 'thermal' measures heat excess in units of "
+                             f"atmosphere.latent_heat (Q), which must then be > 0 (got {scene.atmosphere.latent_heat})")
     if scene.atmosphere is not None:
         a = scene.atmosphere
         for y in (0.0, size[1]):

@@ -91,6 +91,7 @@ DERIVED = {
     "smooth_fields": ("smoothing.fields",),
     "max_level": ("adaptive.enabled", "adaptive.max_level"),
     "lookahead_height": ("adaptive.criterion", "adaptive.lookahead_height"),
+    "refine_warm_air": ("adaptive.criterion",),
     "capacity": (),            # of the particle count, not of the scene alone: memory.particle_slots
 }
 
@@ -145,6 +146,7 @@ def derived_params(scene: Scene, capacity: int, core=None) -> dict:
     ad = scene.adaptive
     out["max_level"] = ad.max_level if ad.enabled else 0
     out["lookahead_height"] = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
+    out["refine_warm_air"] = ad.criterion == "thermal"
     out["capacity"] = capacity
     return out
 

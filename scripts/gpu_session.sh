@@ -42,7 +42,7 @@ for step in "$@"; do
     adaptive_pareto|adaptive_pareto_cumulus)  # paper scale, 3 seeds; runs cached in $CLOUDPBF_RUNS across calls
       scene=growing; [ "$step" = adaptive_pareto_cumulus ] && scene=cumulus
       timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
-        --backend cuda --scheduler inline --out "$R" -q ;;
+        --backend cuda ${PARETO_ARGS:---scheduler inline} --out "$R" -q ;;
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
@@ -51,6 +51,14 @@ for step in "$@"; do
 d = sys.argv[1] + '/data/'
 print(cycle_states(pd.read_csv(d + 'cycling_cycles.csv'), pd.read_csv(d + 'cycling_budgets.csv'), sys.argv[2]))" \
         "$R" /tmp/cycle_states && tar cf "$OUT/cycle_states.tar" -C /tmp cycle_states ;;
+    pareto_states)  # seed 0's final states of the best adaptive variant and its uniform twins, for renders
+      python3 -c "import sys, json, pathlib, pandas as pd; from bench.studies.adaptive_pareto import pareto_states
+d = pathlib.Path(sys.argv[1]) / 'data'
+for suffix, scene in (('', 'growing'), ('_cumulus', 'cumulus')):
+    if (d / f'adaptive_verdict{suffix}.json').is_file():
+        print(pareto_states(pd.read_csv(d / f'adaptive_pareto{suffix}.csv'), pd.read_csv(d / f'adaptive_pareto_configs{suffix}.csv'),
+                            json.loads((d / f'adaptive_verdict{suffix}.json').read_text()), f'/tmp/pareto_states/{scene}'))" \
+        "$R" && tar cf "$OUT/pareto_states.tar" -C /tmp pareto_states ;;
     multigpu)  # the sweep's particle runs on 1 GPU, then on 2 (dask-cuda: the multigpu extra, e.g. from .whl/)
       timeout ${STUDY_TIMEOUT:-590} python3 -m bench.cli multigpu-sweep --gpus-list 1,2 --scale ${MULTIGPU_SCALE:-gpu} \
         --out "$R" -q && cat "$R/data/multigpu_sweep.csv" ;;

@@ -4,6 +4,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from pbf_cuda import Simulation, load_scene
+from pbf_cuda.scene import SceneError
 from solver_helpers import BACKENDS, by_id
 
 
@@ -288,3 +289,63 @@ def test_lookahead_criterion_refines_air_within_its_rise_of_saturation(backend, 
     assert n_fine_below == 0
     # every upper particle is a candidate; the conflict rule lets about one in twenty split per round
     assert n_fine > 0.03 * n_upper and rejected == 0
+
+
+def _excess_at(scene, energy):
+    """The heat excess (K) at which the 'thermal' criterion's E of eq. 20 equals energy."""
+    ad = scene.adaptive
+    return -np.log1p(-energy / ad.k_p) / ad.k_c * scene.atmosphere.latent_heat
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("k_c, alpha, beta", [(2000.0, 0.3, 0.05), (500.0, 0.2, 0.02), (8000.0, 0.5, 0.1)])
+def test_thermal_criterion_refines_warm_air_and_keeps_it_fine(backend, k_c, alpha, beta):
+    """Clear, dry air: the upper half of a box is 1.5x the split excess warmer than the environment profile
+    T0(y), the lower half holds 0.7x: the thermal criterion refines exactly the upper half (the paper's and the
+    look-ahead criteria nothing). Fine particles with an excess between the merge and split excesses stay fine
+    (hysteresis); those at T0(y) merge back."""
+    knobs = {"adaptive.k_c": k_c, "adaptive.split_threshold": alpha, "adaptive.merge_threshold": beta,
+             "atmosphere.initial_vapor_ratio": 0.3}
+    found = {}
+    for criterion in ("paper", "lookahead", "thermal"):
+        scene = adaptive_scene(**knobs, **{"adaptive.criterion": criterion})
+        split_excess, merge_excess = _excess_at(scene, alpha), _excess_at(scene, beta)
+        sim = Simulation(scene, backend=backend)
+        st = sim.state()
+        y = st["position"][:, 1].astype(np.float64)
+        mid = 0.5 * scene.domain.size[1]
+        upper = y > mid
+        t0 = scene.atmosphere.ground_temperature - scene.atmosphere.lapse_rate * y
+        st["temperature"] = (t0 + np.where(upper, 1.5, 0.7) * split_excess).astype(np.float32)
+        st["cloud"] = np.zeros_like(st["cloud"])
+        sim = Simulation.from_arrays(scene, st, backend=backend)
+        sim.adapt()
+        after = sim.state()
+        fine = after["level"] > 0
+        found[criterion] = (int(fine.sum()), int((fine & (after["position"][:, 1] < mid - scene.particles.spacing)).sum()),
+                            int(upper.sum()))
+    assert found["paper"][0] == 0 and found["lookahead"][0] == 0
+    n_fine, n_fine_below, n_upper = found["thermal"]
+    assert n_fine_below == 0 and n_fine > 0.03 * n_upper
+
+    # hysteresis: a mixed-level box, excess between the two thresholds keeps every fine particle; at T0(y) they merge
+    scene = adaptive_scene(**knobs, **{"adaptive.criterion": "thermal", "atmosphere.buoyancy": 0.0})
+    levels = {}
+    for label, factor in (("between", np.sqrt(split_excess * merge_excess) / split_excess), ("environment", 0.0)):
+        st = mixed_level_state(scene, backend)
+        st["velocity"][:] = 0.0
+        y = st["position"][:, 1].astype(np.float64)
+        t0 = scene.atmosphere.ground_temperature - scene.atmosphere.lapse_rate * y
+        st["temperature"] = (t0 + factor * split_excess).astype(np.float32)
+        st["cloud"] = np.zeros_like(st["cloud"])
+        sim = Simulation.from_arrays(scene, st, backend=backend)
+        before = int((sim.state()["level"] > 0).sum())
+        sim.adapt()
+        levels[label] = (before, int((sim.state()["level"] > 0).sum()))
+    assert levels["between"][1] == levels["between"][0] > 0
+    assert levels["environment"][1] < levels["environment"][0]
+
+
+def test_thermal_criterion_needs_a_latent_heat():
+    with pytest.raises(SceneError, match="atmosphere.latent_heat"):
+        adaptive_scene(**{"adaptive.criterion": "thermal", "atmosphere.latent_heat": 0.0})

@@ -82,3 +82,34 @@ def test_analysis_writes_a_verdict_with_cost_ratio_and_speedup():
     assert verdict["cost_ratio_per_particle"] == pytest.approx(1.2, rel=1e-6)
     assert verdict["noise_floor"] < 0.01
     assert "2.00x faster" in verdict["verdict"]
+
+
+def test_render_configs_pick_the_best_variant_and_its_uniform_twins():
+    per_config = pd.DataFrame({
+        "config": ["uniform-68m", "uniform-54m", "uniform-43m", "uniform-34m", "thermal-68m", "paper-54m"],
+        "kind": ["uniform"] * 4 + ["adaptive"] * 2, "spacing_m": [68.0, 54.0, 43.0, 34.0, 68.0, 54.0],
+        "error": [0.8, 0.6, 0.3, 0.1, 0.2, 0.7]})
+    assert ap.render_configs(per_config, {"best": {"name": "paper-54m"}}) == ["paper-54m", "uniform-54m", "uniform-34m"]
+    # without a scored variant: the adaptive run of lowest error; level 3 of 68 m is 34 m
+    assert ap.render_configs(per_config, {"best": None}) == ["thermal-68m", "uniform-68m", "uniform-34m"]
+    assert ap.render_configs(per_config[per_config.kind == "uniform"], {}) == []
+
+
+def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):
+    rng = np.random.default_rng(1)
+    n = 5000
+    cloud = np.where(rng.random(n) < 0.05, 1e-3, 0.0).astype(np.float32)
+    snap = tmp_path / "snap.npz"
+    np.savez(snap, position=rng.random((n, 3)).astype(np.float32), cloud=cloud, level=np.zeros(n, np.uint8),
+             time_s=np.array(1000.0), step=np.array(500))
+    monkeypatch.setattr("bench.store.result.RunResult.load", staticmethod(
+        lambda path: SimpleNamespace(snapshot_paths=lambda: [snap])))
+    per_config = pd.DataFrame({"config": ["uniform-68m", "uniform-34m", "thermal-68m"],
+                               "kind": ["uniform", "uniform", "adaptive"], "spacing_m": [68.0, 34.0, 68.0],
+                               "error": [0.8, 0.1, 0.2]})
+    per_run = pd.DataFrame({"config": per_config["config"], "seed": 0, "run_dir": "x"})
+    written = ap.pareto_states(per_run, per_config, {"best": {"name": "thermal-68m"}}, tmp_path / "states")
+    assert [p.name for p in written] == ["pareto_thermal-68m.npz", "pareto_uniform-68m.npz", "pareto_uniform-34m.npz"]
+    with np.load(written[0]) as z:
+        assert int((z["cloud"] > 0).sum()) == int((cloud > 0).sum())
+        assert 0.05 * n < len(z["cloud"]) < 0.2 * n and int(z["particles"]) == n and str(z["config"]) == "thermal-68m"

@@ -769,6 +769,11 @@ def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
                             "e_cover", "e_volume", "e_lwp", "e_base", "e_top", "e_profile", "speedup_at_equal_error")
                 if c in configs.columns]
         sec.add("table", _table(configs[cols]), caption=f"{scene}: one row per configuration (seed means)")
+        for png in sorted(inp.renders.glob(f"pareto_{scene}_*.png")):
+            name = png.stem[len(f"pareto_{scene}_"):]
+            sec.add("image", plots.png_file_uri(png), caption=(
+                f"{scene}, {name}, seed 0 at the end of the run: cloudy particles (w > 1e-5 kg/kg); the best "
+                "adaptive variant is drawn beside the uniform runs at its level-0 and finest spacings."))
         runs_df, _ = inp.csv(f"adaptive_pareto{suffix}")
         sec.provenance = _provenance(runs_df, env=env)
     if not shown:

@@ -436,7 +436,7 @@ def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None
     for row in uniform.itertuples():
         ax.annotate(f"{row.spacing_m:g} m", (row.error, row.ms_per_step), textcoords="offset points", xytext=(4, 4),
                     fontsize=8)
-    markers = {"paper": "s", "lookahead": "D"}
+    markers = {"paper": "s", "lookahead": "D", "thermal": "^"}
     for i, (crit, g) in enumerate(d[d["kind"] == "adaptive"].groupby("criterion")):
         ax.errorbar(g["error"], g["ms_per_step"], xerr=g["error_seed_spread"], fmt=markers.get(crit, "^"),
                     color=f"C{i + 1}", capsize=3, label=f"adaptive, {crit}")

@@ -57,7 +57,7 @@ from bench.studies.scales import scale_steps
 from pbf_cuda.scene import Scene, load_scene
 
 SCENES = ("growing", "cumulus")
-CRITERIA = ("paper", "lookahead")
+CRITERIA = ("paper", "lookahead", "thermal")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
 REFERENCE_SPACING = 27.0
@@ -307,6 +307,77 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
     runs.atomic_write_json(ctx.data / f"adaptive_verdict{suffix}.json", verdict)
     return {"runs": per_run, "configs": per_config, "verdict": verdict}
+
+
+# ---- renders: the best variant beside the uniform runs at its level-0 and finest spacings ---------------
+RENDER_CLOUD_THRESHOLD = 1e-5   # kg/kg: particles above it are all kept in the compact states
+RENDER_CLEAR_FRACTION = 0.1     # and this fraction of the clear ones
+
+
+def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
+    """The configurations drawn side by side: the best adaptive variant (or, without a scored one, the one of
+    lowest error), the uniform run at its level-0 spacing, and the uniform run nearest its finest spacing."""
+    adaptive = per_config[per_config.kind == "adaptive"].dropna(subset=["error"])
+    uniform = per_config[per_config.kind == "uniform"]
+    if adaptive.empty or uniform.empty:
+        return []
+    best = (verdict.get("best") or {}).get("name") or adaptive.sort_values("error")["config"].iloc[0]
+    spacing = float(per_config.loc[per_config.config == best, "spacing_m"].iloc[0])
+    names = [best]
+    for target in (spacing, spacing / 2.0):   # level 0, and level 3 (h_l = h0 2^(-l/3): spacing halves)
+        nearest = uniform.iloc[int(np.argmin(np.abs(np.log(uniform["spacing_m"].to_numpy(float) / target))))]
+        if nearest["config"] not in names:
+            names.append(str(nearest["config"]))
+    return names
+
+
+def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict, out_dir, seed: int = 0) -> list:
+    """Compact final states (every cloudy particle, a tenth of the clear ones; position, cloud, level) of seed
+    `seed`'s run of each of :func:`render_configs`, for renders where pyvista is: OUT/pareto_<config>.npz."""
+    from pathlib import Path
+    from bench.store.result import RunResult
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in render_configs(per_config, verdict):
+        rows = per_run[(per_run["config"] == name) & (per_run["seed"] == seed)]
+        if rows.empty:
+            continue
+        snaps = RunResult.load(rows["run_dir"].iloc[0]).snapshot_paths()
+        if not snaps:
+            continue
+        with np.load(snaps[-1]) as z:
+            state = {k: z[k] for k in z.files}
+        keep = ((state["cloud"] > RENDER_CLOUD_THRESHOLD)
+                | (np.random.default_rng(0).random(len(state["cloud"])) < RENDER_CLEAR_FRACTION))
+        compact = {k: state[k][keep] for k in ("position", "cloud", "level") if k in state}
+        compact.update(time_s=state["time_s"], step=state["step"], config=np.array(name),
+                       particles=np.array(len(keep)))
+        target = out_dir / f"pareto_{name}.npz"
+        np.savez_compressed(target, **compact)
+        written.append(target)
+    return written
+
+
+def render_pareto_states(states_dir, out_dir, scene_name: str) -> list:
+    """Render the compact states of :func:`pareto_states` as cloud points, one PNG per configuration
+    (OUT/pareto_<scene>_<config>.png); none where pyvista cannot render (a note is left instead)."""
+    from pathlib import Path
+    from bench.render import render_or_note, render_particles
+    written = []
+    for path in sorted(Path(states_dir).glob("pareto_*.npz")):
+        with np.load(path) as z:
+            state = {k: z[k] for k in z.files}
+        name = str(state.pop("config"))
+        config = next(c for c in configs("gpu") if c.name == name) if name in {c.name for c in configs("gpu")} else None
+        kind = config.kind if config else "uniform"
+        scene = load_scene(f"{scene_name}_adaptive" if kind == "adaptive" else scene_name)
+        title = f"{scene_name}, {name} ({int(state.pop('particles')):,} particles), t = {float(state['time_s']):.0f} s"
+        done = render_or_note(render_particles, Path(out_dir) / f"pareto_{scene_name}_{name}.png", state, scene,
+                              title=title)
+        if done is not None:
+            written.append(done)
+    return written
 
 
 def adaptive_pareto_command(

@@ -51,6 +51,7 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
     ap.max_level = p.max_level < kMaxLevels - 1 ? p.max_level : kMaxLevels - 2;
     ap.min_distance = p.min_distance;
     ap.lookahead_height = p.thermodynamics ? p.lookahead_height : 0.0f;
+    ap.refine_warm_air = p.thermodynamics && p.refine_warm_air;
     ap.h0 = p.h0;
     for (int l = 0; l < kMaxLevels; ++l) ap.spacing[l] = p.spacing * std::pow(2.0f, -l / 3.0f);
     // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.

@@ -88,6 +88,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, merge_threshold, "adaptive.merge_threshold", 0.05f)  /* beta */                                       \
     S(float, min_distance, "adaptive.min_distance", 0.35f)  /* too-close threshold, times the new radius */        \
     S(float, lookahead_height, "", 0.0f)   /* refinement: 0 = the paper's eq. 20 on w; > 0 = look-ahead rise, m */ \
+    S(bool, refine_warm_air, "", false)    /* refinement: also on the heat excess (T - T0(y)) / Q (thermal) */   \
     S(std::size_t, capacity, "", 0)                        /* preallocated particle slots */
 
 struct Params {
