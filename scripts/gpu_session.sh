@@ -42,7 +42,7 @@ for step in "$@"; do
     adaptive_pareto|adaptive_pareto_cumulus)  # paper scale, 3 seeds; runs cached in $CLOUDPBF_RUNS across calls
       scene=growing; [ "$step" = adaptive_pareto_cumulus ] && scene=cumulus
       timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
-        --backend cuda ${PARETO_ARGS:---scheduler inline} --out "$R" -q ;;
+        --backend cuda ${PARETO_ARGS---scheduler inline} --out "$R" -q ;;
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
       timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
