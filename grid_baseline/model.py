@@ -195,7 +195,10 @@ def make_aux(p: Params, dtype):
             pattern = pattern * np.where(q > 0.0, q * q, 0.0)
     else:
         pattern = np.zeros_like(X)
-    mask = (yc < p.heating_depth).astype(np.float64)
+    # each cell heated by the part of it below heating_depth, as the particles weigh their layers: the
+    # column's heat input is S_e * heating_depth at every resolution
+    dy = p.steps[UP]
+    mask = np.clip((p.heating_depth - (yc - 0.5 * dy)) / dy, 0.0, 1.0) if p.heating_depth > 0.0 else 0.0 * yc
     heat = p.heating_rate * pattern[:, None, :] * mask[None, :, None]
     v0 = initial_vapor(p, yc).reshape(_bshape(UP, p.shape[UP]))
     return {
@@ -394,7 +397,7 @@ def physics(state, aux, p: Params):
     clock = state["time"]
     vol = p.cell_volume
     out = {}
-    # eq. 5: ground heating (aux["heat"] = S_e * max(0, 1 + a * noise) below heating_depth, else 0),
+    # eq. 5: ground heating (aux["heat"] = S_e * max(0, 1 + a * noise) times the part of the cell below heating_depth),
     # times the time-of-day factor of eq. C1 at the step's mid-time
     if p.heating_rate > 0.0:
         theta = theta + (dt * diurnal_factor(clock + 0.5 * dt, p.diurnal_period)) * aux["heat"]

@@ -161,7 +161,8 @@ class Atmosphere:
     saturation_b: float = _spec(-4302.6, -1e6, 1e6, "K", "B of eq. 10")
     saturation_c: float = _spec(-29.65, -1e4, 1e4, "K", "C of eq. 10")
     heating_rate: float = _spec(0.05, 0.0, 100.0, "K/s", "S_e of eq. 5")
-    heating_depth: float = _spec(100.0, 0.0, 1e5, "m", "particles below this height are heated")
+    heating_depth: float = _spec(100.0, 0.0, 1e5, "m", "air below this height is heated (each particle by the "
+                                                        "part of its layer below it)")
     noise_frequency: float = _spec(1.0 / 800.0, 0.0, 1e3, "1/m", "spatial frequency of the simplex heating pattern")
     noise_amplitude: float = _spec(1.0, 0.0, 10.0, "", "S = S_e * max(0, 1 + amplitude * noise(x f, z f))")
     heating_patch_radius: float = _spec(0.0, 0.0, 1e6, "m",

@@ -82,8 +82,7 @@ DERIVED = {
     "velocity_projection": ("pbf.projection",),
     "thermodynamics": ("atmosphere",),
     "saturation": ("atmosphere.saturation_a", "atmosphere.saturation_b", "atmosphere.saturation_c"),
-    "heating_rate": ("atmosphere.heating_rate", "atmosphere.heating_depth", "particles.spacing"),
-    "heating_depth": ("atmosphere.heating_depth", "particles.spacing"),
+    "heating_layer": ("domain.size", "particles.spacing"),
     "vapor_relative": ("atmosphere.vapor_profile",),
     "kappa": ("atmosphere", "smoothing.kappa", "smoothing.fields"),
     "smoothing_beta": ("atmosphere", "smoothing.kappa", "smoothing.fields", "smoothing.epsilon", "domain.size",
@@ -131,11 +130,9 @@ def derived_params(scene: Scene, capacity: int, core=None) -> dict:
     if scene.thermodynamics:
         a = scene.atmosphere
         out["saturation"] = [a.saturation_a, a.saturation_b, a.saturation_c]
-        # Ground heating acts on the lowest particle layer at least; the rate is scaled so the heat
-        # flux S_e * heating_depth (K m/s) does not depend on the particle spacing.
-        depth = max(a.heating_depth, scene.particles.spacing)
-        out["heating_rate"] = a.heating_rate * (a.heating_depth / depth if depth > 0 else 0.0)
-        out["heating_depth"] = depth
+        # Ground heating (eq. 5) weighs each particle by the part of its layer below heating_depth, so the
+        # column's heat input S_e * heating_depth does not depend on the particle spacing (thermodynamics.h).
+        out["heating_layer"] = float(initial_state.lattice_spacings(scene)[1])
         out["vapor_relative"] = a.vapor_profile == "relative"
         sm = scene.smoothing
         kappa = sm.kappa if scene.smoothing_active else 0.0

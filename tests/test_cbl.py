@@ -48,12 +48,12 @@ def grid_run():
 
 
 def test_kinematic_heat_flux_of_the_scene():
-    """H = S_e D mean(pattern): D = 2 layers of 50 m below heating_depth = 100 m; the weak pattern
-    (amplitude 0.5, never clipped) averages to 1 within its amplitude."""
+    """H = S_e D mean(pattern): D = heating_depth at any depth (each layer heated by its part below it); the
+    weak pattern (amplitude 0.5, never clipped) averages to 1 within its amplitude."""
     scene = small_cbl()
     a = scene.atmosphere
     assert cbl.heated_depth(scene) == pytest.approx(a.heating_depth)
-    assert cbl.heated_depth(scene.replace(**{"atmosphere.heating_depth": 130.0})) == pytest.approx(150.0)
+    assert cbl.heated_depth(scene.replace(**{"atmosphere.heating_depth": 130.0})) == pytest.approx(130.0)
     pattern = cbl.mean_heating_pattern(scene)
     assert 1.0 - a.noise_amplitude < pattern < 1.0 + a.noise_amplitude
     assert cbl.kinematic_heat_flux(scene) == pytest.approx(a.heating_rate * a.heating_depth * pattern)

@@ -261,15 +261,17 @@ def test_ground_heating_follows_the_noise_pattern(patch):
     s1 = by_id(sim.state())
     dT = s1["temperature"] - s0["temperature"]
     p = s1["position"]
-    depth = max(a.heating_depth, scene.particles.spacing)
-    ground = p[:, 1] < depth
+    from pbf_cuda.initial_state import lattice_spacings
+    d = lattice_spacings(scene)[1]
+    fraction = np.clip((a.heating_depth - (s0["position"][:, 1] - 0.5 * d)) / d, 0.0, 1.0)   # of the layer, heated
+    ground = fraction > 0
     from pbf_cuda.noise import heating_pattern
     pattern = heating_pattern(p[:, 0], p[:, 2], a.noise_frequency, a.noise_amplitude, a.noise_offset)
     if patch:
         q = 1.0 - ((p[:, 0] - scene.domain.size[0] / 2) ** 2 + (p[:, 2] - scene.domain.size[2] / 2) ** 2) / patch**2
         pattern = pattern * np.where(q > 0, q * q, 0.0)
         assert (ground & (q > 0.5)).any() and (ground & (q <= 0)).any()
-    expect = a.heating_rate * a.heating_depth / depth * pattern
+    expect = a.heating_rate * fraction * pattern
     assert np.allclose(dT[ground], expect[ground], atol=1e-4)
     assert np.abs(dT[~ground]).max() < 1e-4
     from grid_baseline.model import make_aux, params_from_scene, cell_centers
@@ -283,3 +285,25 @@ def test_ground_heating_follows_the_noise_pattern(patch):
         q = 1.0 - ((X.ravel() - scene.domain.size[0] / 2) ** 2 + (Z.ravel() - scene.domain.size[2] / 2) ** 2) / patch**2
         grid_pattern = grid_pattern * np.where(q > 0, q * q, 0.0)
     assert np.allclose(heat.ravel(), a.heating_rate * grid_pattern, atol=1e-5 * a.heating_rate)
+
+
+@settings(max_examples=12, deadline=None)
+@given(spacing=st.floats(45.0, 230.0), depth=st.floats(20.0, 400.0))
+def test_column_heat_input_does_not_depend_on_resolution(spacing, depth):
+    """Eq. 5 heats every particle (grid cell) by the part of its layer below heating_depth H: the mean warming
+    rate of the whole box is S_e H / L_y at any spacing, also for H below one spacing or between layers, in the
+    particle solver and in the grid baseline (no pattern: noise amplitude 0)."""
+    from grid_baseline.model import make_aux, params_from_scene
+    import jax.numpy as jnp
+    scene = small_cloud_scene(**{"domain.size": [1400.0, 1600.0, 1400.0], "particles.spacing": spacing,
+                                 "atmosphere.heating_depth": depth, "pbf.iterations": 1, "pbf.scorr_k": 0.0,
+                                 "atmosphere.noise_amplitude": 0.0, "atmosphere.buoyancy": 0.0,
+                                 "atmosphere.phase_rate": 0.0, "particles.max_speed": 0.0})
+    a = scene.atmosphere
+    expected = a.heating_rate * depth / scene.domain.size[1]          # K/s, box mean
+    sim = Simulation(scene, backend="cpu")
+    sim.step(1)
+    assert sim.stats()["heat_source"] / scene.time.dt == pytest.approx(expected, rel=1e-3)   # the step's settling
+    cells = max(2, int(round(scene.domain.size[1] / spacing)))
+    heat = np.asarray(make_aux(params_from_scene(scene, (4, cells, 4)), jnp.float64)["heat"])
+    assert float(heat.mean()) == pytest.approx(expected, rel=1e-6)   # float32 unless jax has x64

@@ -118,8 +118,9 @@ def test_seed_moves_the_heating_pattern():
     assert b.scene.atmosphere.noise_offset != [0.0, 0.0]
     ha, hb = np.asarray(a._aux["heat"]), np.asarray(b._aux["heat"])
     assert ha.shape == hb.shape and not np.allclose(ha, hb)
-    # heated only below heating_depth (60 m: the lowest 50 m cell), at S_e * max(0, 1 + a n)
-    assert (ha[:, 1:, :] == 0).all() and ha[:, 0, :].max() <= 0.02 * 2.0 + 1e-12
+    # heated below heating_depth = 60 m: all of the lowest 50 m cell and a fifth of the next, at S_e max(0, 1 + a n)
+    assert (ha[:, 2:, :] == 0).all() and ha[:, 0, :].max() <= 0.02 * 2.0 + 1e-12
+    assert np.allclose(ha[:, 1, :], 0.2 * ha[:, 0, :], rtol=1e-12)
 
 
 def test_instability_is_reported():

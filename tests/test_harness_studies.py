@@ -284,3 +284,28 @@ def test_cover_summary_finds_onset_and_a_vanish_and_return():
     assert not gone["vanished_and_returned"] and gone["final_cover"] == 0
     never = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": np.zeros(8)}))
     assert never["first_cloud_s"] is None and never["max_cover"] == 0
+
+
+def test_particles_vs_grid_means_over_the_cloudy_period_of_both():
+    """Time means of the seed means, only at times where both solvers' mean cover is above 1%; the grid's
+    times matched to the particles' nearest; rel_diff = (particles - grid) / grid."""
+    import pandas as pd
+    from bench.studies.compare import particles_vs_grid
+    rows = []
+    t = np.arange(0.0, 1001.0, 100.0)
+    for mode, base, cover in (("non-adaptive", 600.0, np.where(t >= 300, 0.5, 0.0)),
+                              ("grid", 800.0, np.where(t >= 400, 0.4, 0.0)),
+                              ("adaptive", 50.0, np.full_like(t, 0.9))):
+        for seed, shift in ((0, -10.0), (1, 10.0)):
+            for ti, c in zip(t, cover):
+                rows.append({"mode": mode, "seed": seed, "time_s": ti + (1.0 if mode == "grid" else 0.0),
+                             "cloud_base": base + shift + ti / 10, "cloud_top": 2 * base, "cloud_cover": c,
+                             "lwp_mean": 0.1 * c, "device": "test", "commit": "abc"})
+    out = particles_vs_grid(pd.DataFrame(rows)).set_index("metric")
+    cloudy = t[t >= 400]
+    assert out.loc["cloud_base", "particles"] == pytest.approx(600.0 + cloudy.mean() / 10)
+    assert out.loc["cloud_base", "grid"] == pytest.approx(800.0 + cloudy.mean() / 10)
+    assert out.loc["cover", "rel_diff"] == pytest.approx(0.25)
+    assert out.loc["cloud_top", "rel_diff"] == pytest.approx(-0.25)
+    assert (out["cloudy_from_s"] == 400.0).all() and (out["times"] == len(cloudy)).all()
+    assert particles_vs_grid(pd.DataFrame(rows).query("mode != 'grid'")).empty

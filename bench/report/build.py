@@ -655,6 +655,13 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
         sec.add("table", _table(pd.DataFrame(rows)), caption=(
             "At each run's last time; mean [95% confidence interval, t over seeds] (onset: first time with cover > 0; "
             "'–' where no cloud formed)."))
+        agreement, _ = inp.csv("particles_vs_grid")
+        if agreement is not None and len(agreement):
+            sec.add("table", _table(agreement[["metric", "particles", "grid", "rel_diff", "cloudy_from_s",
+                                               "cloudy_to_s"]]), caption=(
+                "Particles (non-adaptive) against the grid: time means over the cloudy period (both seed-mean covers "
+                "above 1%) of the seed-mean cloud base and top (m), cover and mean LWP (kg/m2); rel_diff = "
+                "(particles - grid) / grid."))
         if "seed" in ts.columns and ts.groupby(keys)["seed"].nunique().min() < 5:
             sec.add("note", "fewer than 5 seeds in at least one group: the spread is not well sampled.", level="warn")
     else:

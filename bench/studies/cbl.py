@@ -9,9 +9,9 @@ every mass element below heating_depth, so the column's heat input per unit area
 
     H = S_e * D * mean_xz(pattern),   D = the depth of the discrete heated layer
 
-where D counts the particle layers (grid cells) whose centre lies below heating_depth times the
-spacing; the scene puts heating_depth on a multiple of the spacing so D = heating_depth, and the
-particle lattice and the grid's cell centres sample the pattern at the same (x, z).
+where D = heating_depth: both solvers heat each particle layer (grid cell) by the part of it below
+heating_depth, so the discrete heated column is exactly that deep at any spacing; the particle lattice
+and the grid's cell centres sample the pattern at the same (x, z).
 
 Encroachment (no entrainment): the heat H t fills a well-mixed layer of potential temperature
 theta_m up to the height h where the initial profile reaches theta_m, so
@@ -52,12 +52,9 @@ def potential_temperature_lapse(scene: Scene) -> float:
 
 
 def heated_depth(scene: Scene) -> float:
-    """D (m): the layers of the initial lattice (= the grid's cells) whose centres lie below heating_depth."""
-    from pbf_cuda.initial_state import lattice_spacings
-    d = float(lattice_spacings(scene)[1])
-    ny = int(round(scene.domain.size[1] / d))
-    centres = (np.arange(ny) + 0.5) * d
-    return float(np.count_nonzero(centres < scene.atmosphere.heating_depth)) * d
+    """D (m): heating_depth. Both solvers heat each particle layer (grid cell) by the part of it below
+    heating_depth, so the heated column is heating_depth deep at any spacing."""
+    return float(scene.atmosphere.heating_depth)
 
 
 def mean_heating_pattern(scene: Scene) -> float:

@@ -131,9 +131,48 @@ def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | Non
         "compare_profiles": pd.concat(profiles, ignore_index=True) if profiles else pd.DataFrame(columns=head),
         "compare_runs": pd.DataFrame(table),
     }
+    out["particles_vs_grid"] = particles_vs_grid(out["compare_timeseries"])
     for name, frame in out.items():
         runs.write_csv(frame, ctx.data / f"{name}.csv")
     return out
+
+
+AGREEMENT_METRICS = (("cloud_base", "cloud_base"), ("cloud_top", "cloud_top"), ("cover", "cloud_cover"),
+                     ("lwp", "lwp_mean"))
+"""(metric, time-series column) of particles_vs_grid.csv."""
+CLOUDY_COVER = 0.01
+"""A time belongs to the cloudy period when the seed-mean cover of both solvers is above this fraction."""
+
+
+def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive") -> pd.DataFrame:
+    """Time means over the cloudy period of the seed-mean cloud statistics of `mode`'s particles and of the
+    grid: one row per metric (cloud_base, cloud_top in m; cover, a fraction; lwp in kg/m^2) with
+    rel_diff = (particles - grid) / grid.  The cloudy period is the snapshot times at which the seed-mean
+    cover of both is above CLOUDY_COVER (grid times matched to the particles' nearest ones)."""
+    columns = ["metric", "particles", "grid", "rel_diff", "cloudy_from_s", "cloudy_to_s", "times", "device", "commit"]
+    need = {"mode", "time_s", *(c for _, c in AGREEMENT_METRICS)}
+    if series is None or series.empty or not need <= set(series.columns):
+        return pd.DataFrame(columns=columns)
+    means = {m: series[series["mode"] == m].groupby("time_s")[[c for _, c in AGREEMENT_METRICS]].mean()
+             for m in (mode, "grid")}
+    part, grid = means[mode], means["grid"]
+    if part.empty or grid.empty:
+        return pd.DataFrame(columns=columns)
+    grid = grid.reindex(part.index, method="nearest")
+    cloudy = (part["cloud_cover"] > CLOUDY_COVER) & (grid["cloud_cover"] > CLOUDY_COVER)
+    if not cloudy.any():
+        return pd.DataFrame(columns=columns)
+    times = part.index[cloudy]
+    device = " / ".join(sorted(series.loc[series["mode"].isin([mode, "grid"]), "device"].dropna().astype(str).unique())) \
+        if "device" in series else ""
+    commit = str(series["commit"].dropna().iloc[0]) if "commit" in series and series["commit"].notna().any() else ""
+    rows = []
+    for metric, column in AGREEMENT_METRICS:
+        p, g = float(part.loc[cloudy, column].mean()), float(grid.loc[cloudy, column].mean())
+        rows.append({"metric": metric, "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
+                     "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
+                     "device": device, "commit": commit})
+    return pd.DataFrame(rows, columns=columns)
 
 
 def compare_command(
@@ -152,13 +191,16 @@ def compare_command(
         except ValueError as exc:
             raise click.UsageError(str(exc)) from None
     typer.echo(frames["compare_runs"][["solver", "mode", "seed", "stable", "step", "step_wall_s"]].to_string(index=False))
-    typer.echo(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv")
+    if len(frames["particles_vs_grid"]):
+        typer.echo(frames["particles_vs_grid"][["metric", "particles", "grid", "rel_diff"]].to_string(index=False))
+    typer.echo(f"wrote {ctx.data / 'compare_timeseries.csv'}, compare_profiles.csv, compare_runs.csv, "
+               "particles_vs_grid.csv")
 
 
 register(Study("compare", order=30, run=lambda ctx, scene: run_compare(ctx, scene), sections=("adaptive", "compare"),
                 report=(ReportSection("adaptive", "Adaptive against non-adaptive", "bench.report.build:_adaptive", 40),
                         ReportSection("compare", "Particles against the grid baseline", "bench.report.build:_compare_and_cycling", 50),),
-                outputs=("compare_timeseries.csv", "compare_profiles.csv", "compare_runs.csv"),
+                outputs=("compare_timeseries.csv", "compare_profiles.csv", "compare_runs.csv", "particles_vs_grid.csv"),
                 scale={"seeds": {"smoke": 5, "cpu": 5, "gpu": 5},        # noise seeds per mode
                        # the smoke scale's small box that forms clouds (None: scale the scene as the others)
                        "compare_box": {"smoke": SMOKE_BOX, "cpu": None, "gpu": None}},

@@ -47,7 +47,7 @@ struct BudgetTerms {
             s.mT = m * T;
             s.mw = m * cloud[i];
             s.mq = m * (double(vapor[i]) + double(cloud[i]));
-            if (with_heating) s.heat = m * a.heating(xyz(p));
+            if (with_heating) s.heat = m * a.heating(xyz(p), p.w);
             float T0 = a.environment_temperature(p.y);
             double dT = double(T) - T0;
             s.ape = m * (a.buoyancy / T0) * dT * dT * ape_scale;

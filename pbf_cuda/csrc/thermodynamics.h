@@ -32,6 +32,7 @@ struct AtmosphereParams {
     float buoyancy, cloud_gravity, dry_lapse_rate, latent_heat, phase_rate;
     float sat_a, sat_b, sat_c;
     float heating_rate, heating_depth, noise_frequency, noise_amplitude, noise_offset[2];
+    float heating_layer, mass0;            // level-0 layer thickness (m) and mass (kg)
     float patch_radius, patch_centre[2];   // heated patch (m); radius 0: the whole ground
     float dt;
     // Large-scale forcing (docs/cycling.md): diurnal factor of this step (C1), relaxation (C2),
@@ -57,10 +58,20 @@ struct AtmosphereParams {
         }
         return s > 0.0f ? s : 0.0f;
     }
-    // Temperature change of one step from the ground heating at position x (eq. 5), K.
-    PBF_HD float heating(Vec3 x) const {
-        if (!(heating_rate > 0.0f) || !(x.y < heating_depth)) return 0.0f;
-        return heating_rate * diurnal * heating_pattern(x.x, x.z) * dt;   // eq. 5 with C1
+    // Fraction of the layer of a particle of mass m at height y that lies below heating_depth H: the
+    // particle stands for the slab [y - d/2, y + d/2], d = heating_layer (m / m0)^(1/3) (its level's lattice
+    // spacing), so a lattice column takes exactly H of heated air at any spacing, also where H < d.
+    PBF_HD float heated_fraction(float y, float m) const {
+        float d = heating_layer * (m == mass0 ? 1.0f : cbrtf(m / mass0));
+        float f = (heating_depth - (y - 0.5f * d)) / d;
+        return f <= 0.0f ? 0.0f : (f >= 1.0f ? 1.0f : f);
+    }
+    // Temperature change of one step from the ground heating of a particle of mass m at x (eq. 5), K.
+    PBF_HD float heating(Vec3 x, float m) const {
+        if (!(heating_rate > 0.0f) || !(heating_depth > 0.0f)) return 0.0f;
+        float f = heated_fraction(x.y, m);
+        if (f == 0.0f) return 0.0f;
+        return heating_rate * f * diurnal * heating_pattern(x.x, x.z) * dt;   // eq. 5 with C1
     }
     // Initial (and relaxation target) vapor v0(y), kg/kg (section 5).
     PBF_HD float initial_vapor(float y) const {
@@ -118,7 +129,7 @@ struct CloudDynamics {
         double m = pos_new[i].w;
         float T = temperature[i], v = vapor[i], w = cloud[i];
         ForcingSums f{0.0, 0.0, 0.0};
-        T += a.heating(x);                                                                  // eq. 5, C1
+        T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
         float T0 = a.environment_temperature(x.y);
         if (a.relax_decay < 1.0f) {                                                        // C2

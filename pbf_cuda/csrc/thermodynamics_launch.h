@@ -24,6 +24,8 @@ inline AtmosphereParams make_atmosphere_params(const Params& p) {
     atm.sat_c = p.saturation[2];
     atm.heating_rate = p.heating_rate;
     atm.heating_depth = p.heating_depth;
+    atm.heating_layer = p.heating_layer;
+    atm.mass0 = p.mass0;
     atm.noise_frequency = p.noise_frequency;
     atm.noise_amplitude = p.noise_amplitude;
     atm.noise_offset[0] = p.noise_offset[0];
