@@ -343,7 +343,10 @@ def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict
         rows = per_run[(per_run["config"] == name) & (per_run["seed"] == seed)]
         if rows.empty:
             continue
-        snaps = RunResult.load(rows["run_dir"].iloc[0]).snapshot_paths()
+        try:
+            snaps = RunResult.load(rows["run_dir"].iloc[0]).snapshot_paths()
+        except FileNotFoundError:     # the run was made on another machine
+            continue
         if not snaps:
             continue
         with np.load(snaps[-1]) as z:

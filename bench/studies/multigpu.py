@@ -78,8 +78,14 @@ def run_multigpu(base: StudyContext, counts: list[int], keep_runs: bool = False,
         base.say(f"multigpu: {len(specs)} runs on {ctx.cluster_description()}")
         with ctx:
             rows.append(time_sweep(ctx, specs, gpus))
+        base.say(f"multigpu: {gpus} GPU(s): {rows[-1]['wall_s']:.1f} s for {len(specs)} runs")
         if not keep_runs:
             shutil.rmtree(root, ignore_errors=True)
+        frame = _table(base, rows)            # written after every count: a batch cut short keeps what finished
+    return frame
+
+
+def _table(base: StudyContext, rows: list[dict]) -> pd.DataFrame:
     frame = pd.DataFrame(rows)
     one = frame.loc[frame["gpus"] == 1, "wall_s"]
     frame["speedup"] = (float(one.iloc[0]) / frame["wall_s"]) if len(one) else float("nan")
