@@ -309,3 +309,24 @@ def test_particles_vs_grid_means_over_the_cloudy_period_of_both():
     assert out.loc["cloud_top", "rel_diff"] == pytest.approx(-0.25)
     assert (out["cloudy_from_s"] == 400.0).all() and (out["times"] == len(cloudy)).all()
     assert particles_vs_grid(pd.DataFrame(rows).query("mode != 'grid'")).empty
+
+
+def test_sweep_cloud_means_and_the_convergence_plot():
+    """cloud_means averages only the cloudy snapshots (cover > 1%); the convergence plot draws the resolution
+    runs of both methods, and is left out for a sweep.csv without the statistics."""
+    import pandas as pd
+    from types import SimpleNamespace
+    from bench.report import plots
+    from bench.studies.sweep import cloud_means
+    stats = pd.DataFrame({"cloud_cover": [0.0, 0.005, 0.2, 0.4], "lwp_mean": [0.0, 1.0, 0.1, 0.3],
+                          "cloud_base": [np.nan, 500.0, 600.0, 800.0], "cloud_top": [np.nan, 900.0, 1000.0, 1400.0]})
+    means = cloud_means(SimpleNamespace(stable=True, stats=lambda: stats))
+    assert means == pytest.approx({"cover_mean": 0.3, "lwp_mean": 0.2, "cloud_base_mean": 700.0,
+                                   "cloud_top_mean": 1200.0})
+    assert all(math.isnan(v) for v in cloud_means(SimpleNamespace(stable=False, stats=lambda: stats)).values())
+    sweep = pd.DataFrame({"method": ["particles"] * 3 + ["grid"] * 3, "parameter": ["spacing"] * 3 + ["cells"] * 3,
+                          "resolution_m": [100.0, 70.0, 50.0, 100.0, 66.0, 50.0],
+                          "cover_mean": [0.3, 0.35, 0.37, 0.5, 0.45, 0.41], "lwp_mean": [0.1] * 6,
+                          "cloud_base_mean": [600.0] * 6, "cloud_top_mean": [1500.0] * 6})
+    assert plots.convergence_plot(sweep).startswith("data:image/png;base64,")
+    assert plots.convergence_plot(sweep.drop(columns=["resolution_m"])) is None

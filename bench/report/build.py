@@ -746,6 +746,12 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
     verdict = _study_verdict(inp) or _verdict(measured)
     if verdict:
         sec.add("text", verdict)
+    convergence = plots.convergence_plot(df)
+    if convergence is not None:
+        sec.add("image", convergence, caption=(
+            "Convergence: each solver's cloud statistics (time means over the run's cloudy period, cover > 1%) "
+            "against its resolution, particle spacing or grid cell size (finer to the right); where the two "
+            "lines approach each other as they refine, the solvers converge toward one answer."))
     if "stable" in df.columns:
         unstable = df[~df["stable"].map(plots._truthy)]
         if len(unstable):

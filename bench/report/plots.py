@@ -452,3 +452,32 @@ def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None
     ax.legend(fontsize=8)
     fig.tight_layout()
     return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# sweep: convergence of both solvers with resolution
+# ------------------------------------------------------------------------------------------
+CONVERGENCE_PANELS = (("cover_mean", "cloud cover (fraction of columns)"), ("lwp_mean", "mean LWP (kg/m2)"),
+                      ("cloud_base_mean", "cloud base (m)"), ("cloud_top_mean", "cloud top (m)"))
+
+
+def convergence_plot(sweep: pd.DataFrame) -> str | None:
+    """Time means over the cloudy period of each resolution run of the sweep (particles: spacing; grid: cell
+    size along the longest axis) against that resolution, one panel per statistic, one line per solver;
+    None when the sweep has no such columns."""
+    runs_ = sweep[sweep["parameter"].isin(["spacing", "cells"])] if "parameter" in sweep else sweep.iloc[:0]
+    panels = [(c, label) for c, label in CONVERGENCE_PANELS if c in runs_.columns and runs_[c].notna().any()]
+    if "resolution_m" not in runs_.columns or not panels:
+        return None
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.4), squeeze=False)
+    for ax, (column, label) in zip(axes[0], panels):
+        for i, (method, g) in enumerate(runs_.groupby("method", sort=True)):
+            g = g.sort_values("resolution_m")
+            ax.plot(g["resolution_m"], g[column], "o-", color=f"C{i}", label=method)
+        ax.set_xscale("log")
+        ax.invert_xaxis()                       # finer to the right
+        ax.set_xlabel("particle spacing / grid cell (m)")
+        ax.set_ylabel(label)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    return to_data_uri(fig)

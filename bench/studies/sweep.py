@@ -108,6 +108,26 @@ def cloud_signature(result: runs.RunResult) -> dict | None:
             "z": mean_profile.index.to_numpy(float), "profile": mean_profile.to_numpy(float)}
 
 
+CONVERGENCE_STATISTICS = (("cover_mean", "cloud_cover"), ("lwp_mean", "lwp_mean"), ("cloud_base_mean", "cloud_base"),
+                          ("cloud_top_mean", "cloud_top"))
+"""(sweep.csv column, time-series column): time means over the run's cloudy period, for the convergence plot."""
+CLOUDY_COVER = 0.01
+
+
+def cloud_means(result: runs.RunResult) -> dict:
+    """Time means of cover, mean LWP (kg/m^2), cloud base and top (m) over the snapshots whose cover is above
+    CLOUDY_COVER (NaN without any)."""
+    stats = result.stats() if result.stable else pd.DataFrame()
+    out = {name: math.nan for name, _ in CONVERGENCE_STATISTICS}
+    if not len(stats) or "cloud_cover" not in stats:
+        return out
+    cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
+    for name, column in CONVERGENCE_STATISTICS:
+        if len(cloudy) and column in cloudy:
+            out[name] = float(cloudy[column].mean())
+    return out
+
+
 def errors(sig: dict | None, ref: dict | None) -> tuple[float, float, float]:
     """(error, e_cover, e_profile) of a signature against a reference signature."""
     if sig is None or ref is None:
@@ -180,6 +200,9 @@ def run_sweep(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
             "particles": res.max_particles, "initial_particles": scene.estimated_particles()
             if p["method"] == "particles" else None, "cells": res.cells,
             "spacing_m": scene.particles.spacing, "iterations": scene.pbf.iterations,
+            "resolution_m": scene.particles.spacing if p["method"] == "particles"
+            else max(scene.domain.size) / float(p["value"]),
+            **cloud_means(res),
             "split_threshold": scene.adaptive.split_threshold if scene.adaptive.enabled else None,
             "reference": i == refs[p["method"]][0], "stable": bool(res.stable), "reason": res.reason,
             "steps": p["spec"].total_steps, "device": res.device, "commit": ctx.commit, "run_dir": str(res.path)})
