@@ -4,7 +4,8 @@ For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide dom
 
 * uniform (non-adaptive) runs at four spacings, e.g. 68, 54, 43 and 34 m at the GPU scale,
 * every adaptive variant (refinement criterion ``paper`` = eq. 20 on the cloud water, ``lookahead`` = eq. 20
-  on the water a particle would hold after rising ``lookahead_height``) at two level-0 spacings (68 and 54 m),
+  on the water a particle would hold after rising ``lookahead_height``, ``thermal`` = eq. 20 on the heat
+  excess over the environment as cloud water) at two level-0 spacings (68 and 54 m),
 * a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
 
 each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
