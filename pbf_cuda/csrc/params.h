@@ -61,8 +61,8 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, latent_heat, "atmosphere.latent_heat", 2489.0f)               /* Q, K (eq. 11) */                     \
     S(float, phase_rate, "atmosphere.phase_rate", 0.5f)                    /* alpha, 1/s (eq. 9) */                \
     A(float, saturation, 3, "", 1.795e5f, -4302.6f, -29.65f)  /* A (kg/kg), B (K), C (K) of eq. 10 */             \
-    S(float, heating_rate, "atmosphere.heating_rate", 0.0f)  /* S_e, K/s (eq. 5), of the air below heating_depth */ \
-    S(float, heating_depth, "atmosphere.heating_depth", 0.0f) /* m; each particle heated by its layer's overlap */  \
+    S(float, heating_rate, "atmosphere.heating_rate", 0.05f) /* S_e, K/s (eq. 5), of the air below heating_depth */ \
+    S(float, heating_depth, "atmosphere.heating_depth", 100.0f) /* m; each particle heated by its layer's overlap */ \
     S(float, heating_layer, "", 0.0f)     /* vertical lattice spacing of level 0, m (a particle's layer: x (m/m0)^1/3) */ \
     S(float, noise_frequency, "atmosphere.noise_frequency", 0.00125f)      /* 1/m */                               \
     S(float, noise_amplitude, "atmosphere.noise_amplitude", 1.0f)                                                  \
