@@ -81,6 +81,7 @@ PY
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
       python3 - "$R" <<PY
 import sys, glob, numpy as np, pandas as pd
+from bench.render import compact_particles
 out = sys.argv[1]
 for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
     snaps = sorted(glob.glob(f"{row.run_dir}/snapshots/*.npz"))
@@ -90,11 +91,9 @@ for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
     if row.example != "growing":
         continue
     # All cloudy particles and one in ten of the clear ones: enough for the renders, small enough to copy.
-    rng = np.random.default_rng(0)
-    sel = (z["cloud"] > 1e-6) | (rng.random(len(z["cloud"])) < 0.1)
-    keep = {k: z[k][sel] for k in ("position", "cloud", "level") if k in z}
+    keep = compact_particles(z, threshold=1e-6)
     np.savez_compressed(f"$OUT/state_{row.example}_{row.mode}.npz", **keep)
-    print("saved", row.example, row.mode, int(sel.sum()), "of", len(sel))
+    print("saved", row.example, row.mode, len(keep["cloud"]), "of", len(z["cloud"]))
 PY
       ;;
     *) echo "unknown step $step" ;;

@@ -113,3 +113,6 @@ def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):
     with np.load(written[0]) as z:
         assert int((z["cloud"] > 0).sum()) == int((cloud > 0).sum())
         assert 0.05 * n < len(z["cloud"]) < 0.2 * n and int(z["particles"]) == n and str(z["config"]) == "thermal-68m"
+        assert str(z["kind"]) == "adaptive"
+    with np.load(written[1]) as z:
+        assert str(z["kind"]) == "uniform"

@@ -311,10 +311,6 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
 
 
 # ---- renders: the best variant beside the uniform runs at its level-0 and finest spacings ---------------
-RENDER_CLOUD_THRESHOLD = 1e-5   # kg/kg: particles above it are all kept in the compact states
-RENDER_CLEAR_FRACTION = 0.1     # and this fraction of the clear ones
-
-
 def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
     """The configurations drawn side by side: the best adaptive variant (or, without a scored one, the one of
     lowest error), the uniform run at its level-0 spacing, and the uniform run nearest its finest spacing."""
@@ -336,9 +332,11 @@ def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict
     """Compact final states (every cloudy particle, a tenth of the clear ones; position, cloud, level) of seed
     `seed`'s run of each of :func:`render_configs`, for renders where pyvista is: OUT/pareto_<config>.npz."""
     from pathlib import Path
+    from bench.render import compact_particles
     from bench.store.result import RunResult
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    kinds = dict(zip(per_config["config"], per_config["kind"]))
     written = []
     for name in render_configs(per_config, verdict):
         rows = per_run[(per_run["config"] == name) & (per_run["seed"] == seed)]
@@ -352,11 +350,9 @@ def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict
             continue
         with np.load(snaps[-1]) as z:
             state = {k: z[k] for k in z.files}
-        keep = ((state["cloud"] > RENDER_CLOUD_THRESHOLD)
-                | (np.random.default_rng(0).random(len(state["cloud"])) < RENDER_CLEAR_FRACTION))
-        compact = {k: state[k][keep] for k in ("position", "cloud", "level") if k in state}
+        compact = compact_particles(state)
         compact.update(time_s=state["time_s"], step=state["step"], config=np.array(name),
-                       particles=np.array(len(keep)))
+                       kind=np.array(kinds[name]), particles=np.array(len(state["cloud"])))
         target = out_dir / f"pareto_{name}.npz"
         np.savez_compressed(target, **compact)
         written.append(target)
@@ -372,9 +368,7 @@ def render_pareto_states(states_dir, out_dir, scene_name: str) -> list:
     for path in sorted(Path(states_dir).glob("pareto_*.npz")):
         with np.load(path) as z:
             state = {k: z[k] for k in z.files}
-        name = str(state.pop("config"))
-        config = next(c for c in configs("gpu") if c.name == name) if name in {c.name for c in configs("gpu")} else None
-        kind = config.kind if config else "uniform"
+        name, kind = str(state.pop("config")), str(state.pop("kind"))
         scene = load_scene(f"{scene_name}_adaptive" if kind == "adaptive" else scene_name)
         title = f"{scene_name}, {name} ({int(state.pop('particles')):,} particles), t = {float(state['time_s']):.0f} s"
         done = render_or_note(render_particles, Path(out_dir) / f"pareto_{scene_name}_{name}.png", state, scene,

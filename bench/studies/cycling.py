@@ -235,6 +235,7 @@ def cycle_states(cycles: pd.DataFrame, budgets: pd.DataFrame, out_dir, seed: int
     every cloudy particle and `clear_fraction` of the clear ones (position, cloud, level); grid runs keep
     the cloud-water field.  Writes OUT/cycle_<mode>_<peak|min>.npz; returns the paths written."""
     from pathlib import Path
+    from bench.render import compact_particles
     from bench.store.result import RunResult
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -256,9 +257,7 @@ def cycle_states(cycles: pd.DataFrame, budgets: pd.DataFrame, out_dir, seed: int
             with np.load(path) as z:
                 state = {k: z[k] for k in z.files}
             if "position" in state:
-                rng = np.random.default_rng(0)
-                keep = (state["cloud"] > CLOUD_RENDER_THRESHOLD) | (rng.random(len(state["cloud"])) < clear_fraction)
-                compact = {k: state[k][keep] for k in ("position", "cloud", "level") if k in state}
+                compact = compact_particles(state, CLOUD_RENDER_THRESHOLD, clear_fraction)
             else:
                 compact = {"cloud": state["cloud"].astype(np.float32),
                            **{k: state[k] for k in ("cell_size", "origin") if k in state}}
