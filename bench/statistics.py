@@ -70,6 +70,14 @@ DIAGNOSTIC_COLUMNS = (
 PROFILE_COLUMNS = ("z", "cloud_fraction", "temperature", "vapor", "cloud")
 """Columns of the DataFrame returned by :func:`vertical_profiles`."""
 
+CLOUDY_COVER = 0.01
+"""Cover (fraction of columns) above which a snapshot belongs to a run's cloudy period."""
+
+CLOUD_MEANS = (("cloud_base", "cloud_base"), ("cloud_top", "cloud_top"), ("cover", "cloud_cover"),
+               ("lwp", "lwp_mean"))
+"""(name, diagnostics column) of the statistics averaged over a cloudy period (base, top in m; cover, a
+fraction; mean LWP in kg/m^2): particles_vs_grid.csv's metrics, the sweep's <name>_mean columns."""
+
 _DEFAULT_PERIODIC = (True, False, True)
 _CHUNK_ENTRIES = 1 << 20  # particle x stencil entries per task (~50 MB of temporaries)
 

@@ -23,7 +23,7 @@ import typer
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
-from bench.statistics import DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
+from bench.statistics import CLOUD_MEANS, CLOUDY_COVER, DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -137,23 +137,16 @@ def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | Non
     return out
 
 
-AGREEMENT_METRICS = (("cloud_base", "cloud_base"), ("cloud_top", "cloud_top"), ("cover", "cloud_cover"),
-                     ("lwp", "lwp_mean"))
-"""(metric, time-series column) of particles_vs_grid.csv."""
-CLOUDY_COVER = 0.01
-"""A time belongs to the cloudy period when the seed-mean cover of both solvers is above this fraction."""
-
-
 def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive") -> pd.DataFrame:
     """Time means over the cloudy period of the seed-mean cloud statistics of `mode`'s particles and of the
     grid: one row per metric (cloud_base, cloud_top in m; cover, a fraction; lwp in kg/m^2) with
     rel_diff = (particles - grid) / grid.  The cloudy period is the snapshot times at which the seed-mean
     cover of both is above CLOUDY_COVER (grid times matched to the particles' nearest ones)."""
     columns = ["metric", "particles", "grid", "rel_diff", "cloudy_from_s", "cloudy_to_s", "times", "device", "commit"]
-    need = {"mode", "time_s", *(c for _, c in AGREEMENT_METRICS)}
+    need = {"mode", "time_s", *(c for _, c in CLOUD_MEANS)}
     if series is None or series.empty or not need <= set(series.columns):
         return pd.DataFrame(columns=columns)
-    means = {m: series[series["mode"] == m].groupby("time_s")[[c for _, c in AGREEMENT_METRICS]].mean()
+    means = {m: series[series["mode"] == m].groupby("time_s")[[c for _, c in CLOUD_MEANS]].mean()
              for m in (mode, "grid")}
     part, grid = means[mode], means["grid"]
     if part.empty or grid.empty:
@@ -167,7 +160,7 @@ def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive") -> pd.Da
         if "device" in series else ""
     commit = str(series["commit"].dropna().iloc[0]) if "commit" in series and series["commit"].notna().any() else ""
     rows = []
-    for metric, column in AGREEMENT_METRICS:
+    for metric, column in CLOUD_MEANS:
         p, g = float(part.loc[cloudy, column].mean()), float(grid.loc[cloudy, column].mean())
         rows.append({"metric": metric, "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
                      "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),

@@ -33,7 +33,7 @@ from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
-from bench.statistics import grid_for_scene
+from bench.statistics import CLOUD_MEANS, CLOUDY_COVER, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -108,23 +108,17 @@ def cloud_signature(result: runs.RunResult) -> dict | None:
             "z": mean_profile.index.to_numpy(float), "profile": mean_profile.to_numpy(float)}
 
 
-CONVERGENCE_STATISTICS = (("cover_mean", "cloud_cover"), ("lwp_mean", "lwp_mean"), ("cloud_base_mean", "cloud_base"),
-                          ("cloud_top_mean", "cloud_top"))
-"""(sweep.csv column, time-series column): time means over the run's cloudy period, for the convergence plot."""
-CLOUDY_COVER = 0.01
-
-
 def cloud_means(result: runs.RunResult) -> dict:
     """Time means of cover, mean LWP (kg/m^2), cloud base and top (m) over the snapshots whose cover is above
     CLOUDY_COVER (NaN without any)."""
     stats = result.stats() if result.stable else pd.DataFrame()
-    out = {name: math.nan for name, _ in CONVERGENCE_STATISTICS}
+    out = {f"{name}_mean": math.nan for name, _ in CLOUD_MEANS}
     if not len(stats) or "cloud_cover" not in stats:
         return out
     cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
-    for name, column in CONVERGENCE_STATISTICS:
+    for name, column in CLOUD_MEANS:
         if len(cloudy) and column in cloudy:
-            out[name] = float(cloudy[column].mean())
+            out[f"{name}_mean"] = float(cloudy[column].mean())
     return out
 
 
