@@ -94,7 +94,8 @@ def fine_particles(scene: Scene) -> int:
 def _coarsen(scene: Scene, factor: float, extra: dict | None = None) -> Scene:
     changes = {"particles.spacing": scene.particles.spacing * factor, **(extra or {})}
     if scene.thermodynamics and factor > 1.0:
-        # keep the heat flux S_e * depth (eq. 5); the thicker layer still holds particles
+        # a layer as many particles deep as at the scene's spacing, with the same heat flux S_e * depth (eq. 5;
+        # the layer weighting of eq. 5 keeps the flux at any depth, this keeps where the heat goes)
         changes["atmosphere.heating_depth"] = scene.atmosphere.heating_depth * factor
         changes["atmosphere.heating_rate"] = scene.atmosphere.heating_rate / factor
     return scene.replace(**changes)
