@@ -12,6 +12,8 @@
 //    and never adds kinetic energy; the density constraint is bilateral, so heated air cannot leave a
 //    rarefied layer behind.
 #pragma once
+#include <algorithm>
+#include <cmath>
 #include "kernels.h"
 #include "pbf_constraints.h"
 #include "solver_data.h"
@@ -228,6 +230,13 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     }
 }
 
+// Column drift (pbf_constraints.h): u_y -= sum m u_y / sum m.
+inline void remove_column_drift(SolverData& d) {
+    if (d.n == 0) return;
+    Double2 sums = reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.vel)}, Double2{0.0, 0.0}, Double2Add{});
+    if (sums.y > 0.0) parallel_for(d.n, RemoveVerticalDrift{raw(d.vel), float(sums.x / sums.y)});
+}
+
 // The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.
 template <class Policy>
 void project_velocity(SolverData& d, const CellRanges& walls) {
@@ -240,6 +249,7 @@ void project_velocity(SolverData& d, const CellRanges& walls) {
         solve_divergence<Policy, true>(d, walls);
     else
         solve_divergence<Policy, false>(d, walls);
+    if (d.p.remove_column_drift && !d.p.periodic[1]) remove_column_drift(d);   // sum m u_y = 0
     d.clock.end(kPhaseSolver);
 }
 

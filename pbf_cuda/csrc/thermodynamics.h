@@ -73,6 +73,11 @@ struct AtmosphereParams {
         if (f == 0.0f) return 0.0f;
         return heating_rate * f * diurnal * heating_pattern(x.x, x.z) * dt;   // eq. 5 with C1
     }
+    // Buoyancy and the weight of cloud water, du_y/dt of eq. 6, m/s^2.
+    PBF_HD float buoyancy_acceleration(float T, float w, float y) const {
+        float T0 = environment_temperature(y);
+        return buoyancy * (T - T0) / T0 - cloud_gravity * w;
+    }
     // Initial (and relaxation target) vapor v0(y), kg/kg (section 5).
     PBF_HD float initial_vapor(float y) const {
         return vapor_ratio * saturation(vapor_relative ? environment_temperature(y) : ground_temperature);
@@ -147,7 +152,7 @@ struct CloudDynamics {
             f.rain = m * (double(w) - double(w_new));
             w = w_new;
         }
-        float accel = a.buoyancy * (T - T0) / T0 - a.cloud_gravity * w;                    // eq. 6
+        float accel = a.buoyancy_acceleration(T, w, x.y);                                  // eq. 6
         Float4 u = vel[i];
         vel[i] = Float4{u.x, u.y + a.dt * accel, u.z, u.w};
         temperature[i] = T;
