@@ -405,8 +405,9 @@ struct VerticalMomentum {
     const Float4* pos;   // .w: mass, kg
     const Float4* vel;
     PBF_HD Double2 operator()(uint32_t i) const {
-        double m = pos[i].w;
-        return Double2{m * double(vel[i].y), m};
+        double m = pos[i].w, u = vel[i].y;
+        if (!(fabs(u) < 1e30)) return Double2{0.0, 0.0};   // a NaN particle stays the one the step's check names
+        return Double2{m * u, m};
     }
 };
 
