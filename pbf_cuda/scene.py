@@ -133,7 +133,7 @@ class PBF:
     remove_column_drift: bool = _spec(True, doc="velocity projection in a box closed at the floor and the lid: remove "
                                       "the fluid's net vertical momentum after the projection (incompressible air there has "
                                       "none; a few CG iterations do not stop a drift of the whole column, which rarefies "
-                                      "heated air: docs/design.md, Column drift)")
+                                      "heated air: README, Physics and numerics, Column drift)")
     unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces only: a closed domain "
                                        "needs the bilateral constraint, or heated air leaves a rarefied layer)")
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")
