@@ -44,7 +44,7 @@ for step in "$@"; do
       timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
         --backend cuda ${PARETO_ARGS---scheduler inline} --out "$R" -q ;;
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
-      timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda --scheduler inline \
+      timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda ${CYCLING_ARGS---scheduler inline} \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
     cycling_states)  # seed 0's states at its first cycle's peak and clearest moment, for renders where pyvista is
       python3 -c "import sys, pandas as pd; from bench.studies.cycling import cycle_states

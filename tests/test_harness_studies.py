@@ -240,11 +240,15 @@ def test_table1_row_is_ms_per_step_without_double_counting():
     timings = {"pbf": {"total_ms": 100.0, "count": 10}, "neighbors": {"total_ms": 30.0, "count": 10},
                "solver": {"total_ms": 60.0, "count": 10}, "smoothing": {"total_ms": 20.0, "count": 10},
                "cloud_dynamics": {"total_ms": 4.0, "count": 10}, "splitting": {"total_ms": 5.0, "count": 2}}
+    steps = pd.DataFrame({"mass_centre_height": [1600.0, 1601.0, 1602.5], "density_excess_mean": [0.0, 0.01, 0.002],
+                          "density_deficit_mean": [0.0, 0.02, 0.004]})
     result = SimpleNamespace(timings=lambda: timings, max_particles=1234, device="dev", backend="cpu", stable=True,
-                             reason=None, path="runs/x")
+                             reason=None, path="runs/x", steps_table=lambda: steps)
     spec = SimpleNamespace(total_steps=12, scene=load_scene("growing_adaptive"))
     ctx = SimpleNamespace(commit="abc", scale=SCALES["smoke"])
     row = table1_row(ROWS[1], spec, result, ctx)
+    # the timing's accuracy: the mass centre's rise over the run and the final density excess / deficit
+    assert (row["mass_centre_rise_m"], row["density_excess_mean"], row["density_deficit_mean"]) == (2.5, 0.002, 0.004)
     assert list(row)[:len(TABLE1_COLUMNS)] == list(TABLE1_COLUMNS)
     assert (row["pbf_ms"], row["smoothing_ms"], row["cloud_dynamics_ms"]) == (10.0, 2.0, 0.4)
     assert row["splitting_ms"] == 0.5 and row["merging_ms"] is None      # split on 2 of 10 steps; no merge timer

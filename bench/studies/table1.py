@@ -13,7 +13,8 @@ At scale ``gpu`` the scenes run at the paper's particle counts; at ``cpu``/``smo
 scaled down (see bench.studies.scales) and the ``scale`` column says so.  Output:
 OUT/data/table1.csv (columns TABLE1_COLUMNS, then backend, scale, steps, initial_particles,
 stable, reason, paper_max_particles, paper_total_ms, speedup_vs_paper = paper_total_ms / total_ms
-(the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv), run_dir).
+(the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv), run_dir), and what the timing was bought
+with: mass_centre_rise_m, density_excess_mean, density_deficit_mean (:func:`incompressibility`).
 """
 from __future__ import annotations
 
@@ -63,8 +64,23 @@ def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
             scene = scene.replace(**{"time.steps": cap})                 # need no 4200 s cycling run
         steps = scene.time.steps
         specs.append(runs.RunSpec("particles", scene, backend=ctx.backend, diagnostics=False, keep_snapshots=1,
-                                  warmup_steps=min(5, steps // 10)))
+                                  warmup_steps=min(5, steps // 10), record_steps=True))
     return specs
+
+
+def incompressibility(result: runs.RunResult) -> dict:
+    """What a timing was bought with: the rise of the mass centre over the run (m; 0 in an incompressible
+    closed box) and the final mean density excess and deficit (relative to rho0), from the run's per-step
+    solver statistics (steps.csv); NaN where the run has none."""
+    steps = result.steps_table()
+    out = {"mass_centre_rise_m": float("nan"), "density_excess_mean": float("nan"),
+           "density_deficit_mean": float("nan")}
+    if len(steps) and "mass_centre_height" in steps:
+        out["mass_centre_rise_m"] = float(steps["mass_centre_height"].iloc[-1] - steps["mass_centre_height"].iloc[0])
+    for key in ("density_excess_mean", "density_deficit_mean"):
+        if len(steps) and key in steps:
+            out[key] = float(steps[key].iloc[-1])
+    return out
 
 
 def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: StudyContext) -> dict:
@@ -83,6 +99,7 @@ def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: Stu
                paper_total_ms=paper.get("total_ms"),
                speedup_vs_paper=paper["total_ms"] / row["total_ms"] if paper and row["total_ms"] else None,
                run_dir=str(result.path))
+    row.update(incompressibility(result))
     return row
 
 
