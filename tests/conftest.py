@@ -18,7 +18,14 @@ def _cuda_available() -> bool:
         return False
 
 
+# The longest tests go first: with pytest-xdist (scripts/test.sh runs one worker per core) a worker that
+# starts the smoke demo last would finish minutes after the others.
+LONGEST_FIRST = ("test_harness_demo.py", "test_atmosphere_energy.py")
+
+
 def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: next((i for i, name in enumerate(LONGEST_FIRST) if item.nodeid.startswith(f"tests/{name}")),
+                                     len(LONGEST_FIRST)))
     if _cuda_available():
         return
     skip = pytest.mark.skip(reason="no CUDA device (gpu tests run on the device machine)")
