@@ -134,6 +134,9 @@ class PBF:
                                       "the fluid's net vertical momentum after the projection (incompressible air there has "
                                       "none; a few CG iterations do not stop a drift of the whole column, which rarefies "
                                       "heated air: README, Physics and numerics, Column drift)")
+    shift_keeps_anomaly: bool = _spec(False, doc="velocity projection with an atmosphere: the density constraint's "
+                                      "vertical shift of a particle moves its temperature along the environment's lapse "
+                                      "rate, not the dry adiabat")
     unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces only: a closed domain "
                                        "needs the bilateral constraint, or heated air leaves a rarefied layer)")
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")

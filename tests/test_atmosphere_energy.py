@@ -200,6 +200,47 @@ def test_gradient_correction_without_the_velocity_projection_is_refused_by_name(
         load_scene("dam_break", **{"pbf.gradient_correction": True})
 
 
+def settling_atmosphere(keeps_anomaly, backend="cpu"):
+    """The stratified box at rest in its environment (T = T0(y), no wave) on a jittered particle set, so the
+    density constraint shifts particles; (statistics at the start, after 1 step, after 10 steps)."""
+    scene = load_scene("stratified").replace(**{"wave.amplitude": 0.0, "pbf.shift_keeps_anomaly": keeps_anomaly})
+    st = Simulation(scene, backend="cpu").state()
+    rng = np.random.default_rng(1)
+    p = st["position"] + rng.uniform(-5.0, 5.0, st["position"].shape).astype(np.float32)
+    p[:, 1] = np.clip(p[:, 1], 1.0, scene.domain.size[1] - 1.0)
+    a = scene.atmosphere
+    st["position"] = p
+    st["temperature"] = (a.ground_temperature - a.lapse_rate * p[:, 1]).astype(np.float32)
+    sim = Simulation.from_arrays(scene, st, backend=backend)
+    out = [sim.stats()]
+    sim.step(1)
+    out.append(sim.stats())
+    sim.step(9)
+    out.append(sim.stats())
+    return out
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_density_shifts_of_an_atmosphere_at_rest_create_no_energy(backend):
+    # The density constraint moves particles without a velocity: a shift, not a motion. Booked on the dry
+    # adiabat (eq. 7) a shift of dy gives the particle an anomaly -(Gamma_d - Gamma_env) dy, which the buoyancy
+    # turns into motion: measured (CPU) 6e4 J of potential energy after one step and 1.8e4 J of kinetic energy
+    # after ten, in air at rest. With pbf.shift_keeps_anomaly the shift moves the temperature along the
+    # environment (dT = -Gamma_env dy), so the anomaly stays 0 up to the float32 rounding of T (about 1 J here).
+    plain = settling_atmosphere(False, backend)
+    kept = settling_atmosphere(True, backend)
+    assert plain[0]["potential_energy"] == 0.0 and kept[0]["potential_energy"] == 0.0
+    assert plain[1]["potential_energy"] > 1e4 and plain[2]["kinetic_energy"] > 1e3
+    assert kept[1]["potential_energy"] < 10.0 and kept[2]["kinetic_energy"] < 10.0
+    assert kept[2]["potential_energy"] < 1e-3 * plain[2]["potential_energy"]
+    # The shift's share of the adiabatic term is in the step's heat budget: the mean temperature moves by the
+    # sum of the terms (float32 temperatures of ~297 K: 1e-6 K).
+    for run in (plain, kept):
+        terms = sum(run[1][k] for k in ("heat_source", "heat_latent", "heat_adiabatic", "heat_smoothing"))
+        assert run[1]["mean_temperature"] - run[0]["mean_temperature"] == pytest.approx(terms, abs=1e-6)
+    assert kept[1]["heat_adiabatic"] != plain[1]["heat_adiabatic"]
+
+
 def heated_box(steps=100, backend="cpu"):
     """A dry, closed, completely filled 800 x 3200 x 800 m atmosphere heated from the ground (no smoothing)."""
     scene = load_scene("growing").replace(**{

@@ -87,7 +87,8 @@ inline void record_budget(SolverData& d, const BudgetSums& start, const BudgetSu
     double M = end.m > 0 ? end.m : 1.0;
     b.heat_source = end.heat / M;
     b.heat_smoothing = smoothing_heat / M;
-    b.heat_adiabatic = -double(d.p.dry_lapse_rate) * (end.my - start.my) / M;
+    b.heat_adiabatic = (-double(d.p.dry_lapse_rate) * (end.my - start.my)
+                        + double(d.p.dry_lapse_rate - d.p.lapse_rate) * d.shift_my) / M;
     // Cloud water removed as rain (C3) released no heat: it is no part of the latent term.
     b.heat_latent = double(d.p.latent_heat) * (end.mw - start.mw + forcing.rain) / M;
     b.heat_relaxation = forcing.heat_relax / M;

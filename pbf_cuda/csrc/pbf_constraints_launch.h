@@ -139,15 +139,36 @@ inline void predict_positions(SolverData& d) {
     parallel_for(d.n, Predict{raw(d.vel), raw(d.pos), raw(d.pred), g, d.p.dt});
 }
 
-// Density constraint iterations on the predicted positions (eq. 1-4, 18).
+struct KeepHeight {
+    const Float4* pred;
+    float* height;
+    PBF_HD void operator()(uint32_t i) const { height[i] = pred[i].y; }
+};
+// shift = y(after) - y(before) of the density constraint; returns m shift (kg m).
+struct VerticalShift {
+    const Float4* pred;
+    float* shift;
+    PBF_HD double operator()(uint32_t i) const {
+        float dy = pred[i].y - shift[i];
+        shift[i] = dy;
+        return double(pred[i].w) * dy;
+    }
+};
+
+// Density constraint iterations on the predicted positions (eq. 1-4, 18). With pbf.shift_keeps_anomaly the
+// vertical shift they give each particle is kept (d.shift_y) for the cloud dynamics (thermodynamics.h).
 template <class Policy>
 void solve_density(SolverData& d, const CellRanges& walls) {
+    const bool keep_shift = !d.shift_y.empty();
+    if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
         parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }
+    d.shift_my = keep_shift ? reduce_over(d.n, VerticalShift{raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>())
+                            : 0.0;
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).

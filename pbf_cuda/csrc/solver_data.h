@@ -37,6 +37,8 @@ struct SolverData {
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
+    dvec<float> shift_y;                     // the density constraint's vertical shift of each particle this step, m
+    double shift_my = 0.0;                   // its mass-weighted sum, kg m
     dvec<float> grad_correction;             // L_i (symmetric 3x3, 6 floats per particle) of the projection's Jacobian
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
@@ -76,6 +78,7 @@ struct SolverData {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);
             cg_mu.assign(cap, 0.0f);
             if (p.gradient_correction) grad_correction.resize(6 * cap);
+            if (p.shift_keeps_anomaly && p.thermodynamics) shift_y.resize(cap);
         }
         if (p.thermodynamics) {
             temperature.resize(cap); vapor.resize(cap); cloud.resize(cap);

@@ -125,6 +125,7 @@ struct CloudDynamics {
     AtmosphereParams a;
     const Float4* pos_old;   // positions at the start of the step
     const Float4* pos_new;   // positions after the PBF solve
+    const float* shift_y;    // nullptr, or the density constraint's vertical shift (pbf.shift_keeps_anomaly)
     Float4* vel;
     float* temperature;
     float* vapor;
@@ -136,6 +137,7 @@ struct CloudDynamics {
         ForcingSums f{0.0, 0.0, 0.0};
         T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
+        if (shift_y) T += (a.dry_lapse_rate - a.lapse_rate) * shift_y[i];                  // shift: -Gamma_env dy
         float T0 = a.environment_temperature(x.y);
         if (a.relax_decay < 1.0f) {                                                        // C2
             float T_new = T0 + (T - T0) * a.relax_decay;

@@ -56,7 +56,8 @@ inline ForcingSums cloud_dynamics(SolverData& d) {
     ForcingSums forcing{0.0, 0.0, 0.0};
     if (!d.p.thermodynamics) return forcing;
     d.clock.begin(kPhaseCloudDynamics);
-    forcing = reduce_over(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred), raw(d.vel), raw(d.temperature),
+    forcing = reduce_over(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred),
+                                             d.shift_y.empty() ? nullptr : raw(d.shift_y), raw(d.vel), raw(d.temperature),
                                              raw(d.vapor), raw(d.cloud)},
                           forcing, ForcingAdd{});
     d.clock.end(kPhaseCloudDynamics);
