@@ -52,6 +52,12 @@ def write_synthetic_study(out, renders=True):
     pd.DataFrame({"particles": [250_000, 1_000_000, 4_000_000], "iterations": 4,
                   "step_ms": [3.0, 11.0, 45.0], "neighbors_ms": [1.0, 4.0, 17.0], "solver_ms": [1.5, 5.5, 23.0],
                   "device": DEVICE, "commit": COMMIT}).to_csv(data / "pbf_scaling.csv", index=False)
+    pd.DataFrame({"machine": "m1", "commit": ["aaaa1111", "bbbb2222", "aaaa1111", "bbbb2222"],
+                  "date": ["2026-01-01 00:00", "2026-01-02 00:00"] * 2, "backend": "cuda", "scene": "growing",
+                  "particles": [64_000, 64_000, 1_000_000, 1_000_000], "time_ms": [1.0, 2.0, 6.0, 6.1],
+                  "ci_low_ms": [0.9, 1.9, 5.9, 6.0], "ci_high_ms": [1.1, 2.1, 6.1, 6.2],
+                  "ratio": [None, 2.0, None, 6.1 / 6.0], "change": ["", "slower", "", ""]}).to_csv(
+        data / "benchmark_history.csv", index=False)
     pd.DataFrame({"scene": ["growing_adaptive"], "spacing_m": [45.0], "mean_particles": [480_000.0],
                   "max_particles": [600_000], "splitting_ms": [0.1], "merging_ms": [0.5], "merge_passes_ms": [0.3],
                   "compaction_ms": [0.1], "pbf_ms": [11.0], "split_target_ms": [0.3], "merge_target_ms": [1.0],
@@ -180,14 +186,15 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["environment", "summary", "table1", "phases", "scaling", "adaptive", "compare", "sweep",
+    assert expected == ["environment", "summary", "table1", "phases", "scaling", "benchmark_history", "adaptive",
+                        "compare", "sweep",
                         "adaptive_pareto", "stress", "renders", "figure1", "figure3"]
     # self-contained: only in-page anchors and embedded images; no path of this machine
     assert not re.search(r"https?://", page)
     assert all(r.startswith("#") or r.startswith(("data:image/png;base64,", "data:image/gif;base64,"))
                for r in parser.refs), parser.refs
     assert str(out) not in page and str(out.parent) not in page
-    assert parser.images == 17   # every figure and render of the synthetic study, the 2-D map and the animation
+    assert parser.images == 18   # every figure and render of the synthetic study, the 2-D map and the animation
     sections = _sections(page)
     for sid in expected:
         assert "not run in this study" not in sections[sid], sid
@@ -395,7 +402,7 @@ def test_table1_total_against_paper_comes_before_the_phase_columns(full_report):
 def test_every_figure_opens_full_size(full_report):
     page = full_report[1]
     figures = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)
-    assert len(figures) == page.count("<img ") == 17
+    assert len(figures) == page.count("<img ") == 18
     assert all(fid == href for fid, href in figures)
     assert len({fid for fid, _ in figures}) == len(figures)          # one anchor per figure
     assert "figure.zoom:target" in page

@@ -70,6 +70,7 @@ COMMANDS = {
     "adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}",
     "stress": "cloudpbf stress --out {out}",
     "renders": "cloudpbf demo --out {out}",
+    "benchmark_history": "cloudpbf benchmark-history --out {out}",
 }
 """The command that produces each input (shown when it is missing)."""
 
@@ -492,6 +493,26 @@ def _scaling(inp: Inputs, sec: Section, env: dict | None) -> None:
             extra["ns per cell"] = 1e6 * extra["step_ms"] / extra["cells"]
         sec.add("table", _table(extra))
     sec.provenance = _provenance(pbf, grid, env=env)
+
+
+def _benchmark_history(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, path = inp.csv("benchmark_history")
+    if df is None:
+        _missing(sec, "benchmark_history.csv (the solver's step across commits, from the asv results in "
+                      "benchmarks/results)", "benchmark_history", inp.out)
+        return
+    sec.add("text", "Each point is one commit's median of asv samples (docs/benchmarks.md), error bars its 99% "
+                    "interval. A change is flagged when the ratio to the machine's previous recorded commit passes "
+                    "the history's factor and the two intervals do not overlap.")
+    for machine in sorted(df["machine"].unique()):
+        sec.add("image", plots.benchmark_history_plot(df, machine), caption=f"{machine}, from {path.name}")
+    changed = df[df["change"].fillna("") != ""]
+    if len(changed):
+        shown = changed[["machine", "commit", "backend", "scene", "particles", "time_ms", "ratio", "change"]].rename(
+            columns={"time_ms": "ms per step", "ratio": "ratio to the previous commit"})
+        sec.add("table", _table(shown, float_format="{:.3g}"), caption="changes between consecutive recorded commits")
+    else:
+        sec.add("note", "no change beyond the factor between consecutive recorded commits", level="ok")
 
 
 PARTICLE_COUNT_COLUMNS = ("n_particles", "particles", "max_particles")

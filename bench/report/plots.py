@@ -125,6 +125,34 @@ def pbf_scaling_plot(df: pd.DataFrame) -> str:
     return to_data_uri(fig)
 
 
+def benchmark_history_plot(df: pd.DataFrame, machine: str) -> str:
+    """ms per step of each recorded commit (commit order) on one machine, one line per backend, scene and
+    size, with asv's 99% interval as error bars; slowdowns flagged by the history are ringed."""
+    g = df[df["machine"] == machine]
+    commits = list(dict.fromkeys(g.sort_values("date")["commit"]))
+    where = {c: i for i, c in enumerate(commits)}
+    fig, ax = plt.subplots(figsize=(8.0, 5.6))
+    for i, ((backend, scene, particles), h) in enumerate(g.groupby(["backend", "scene", "particles"], sort=True)):
+        h = h.sort_values("date")
+        x = h["commit"].map(where).to_numpy(dtype=float)
+        y = h["time_ms"].to_numpy(dtype=float)
+        err = np.vstack([y - h["ci_low_ms"].to_numpy(dtype=float), h["ci_high_ms"].to_numpy(dtype=float) - y])
+        style = "o-" if scene == "growing" else "s--"
+        ax.errorbar(x, y, yerr=np.nan_to_num(np.abs(err)), fmt=style, color=f"C{i % 10}", ms=4, capsize=2,
+                    label=f"{backend}, {scene}, {particles:,} particles")
+        slow = h["change"] == "slower"
+        ax.plot(x[slow.to_numpy()], y[slow.to_numpy()], "o", ms=11, mfc="none", mec="red")
+    ax.set_xticks(range(len(commits)), commits, rotation=30, fontsize=8)
+    ax.set_yscale("log")
+    ax.set_xlabel("commit (oldest left)")
+    ax.set_ylabel("ms per step")
+    ax.set_title(f"Solver step across commits, {machine}\n(red ring: slower than the commit before)", fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
 def grid_scaling_plot(df: pd.DataFrame) -> str:
     """ms per grid step against cell count (log-log), per device and dtype."""
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
