@@ -96,6 +96,12 @@ for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
     print("saved", row.example, row.mode, len(keep["cloud"]), "of", len(z["cloud"]))
 PY
       ;;
+    asv)  # the benchmark history: ASV_COMMITS (default HEAD) recorded on this GPU (docs/benchmarks.md; asv from .whl/)
+      M=gpu-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | tr -c 'A-Za-z0-9\n' '-' | tr -s '-' | sed 's/-$//')
+      python3 -m asv machine --config benchmarks/asv.conf.json --machine "$M" --yes > /dev/null
+      CLOUDPBF_ASV_SIZES=${CLOUDPBF_ASV_SIZES:-64000,250000,1000000} ASV_ARGS=${ASV_ARGS:-"-a rounds=1 -a repeat=5"} \
+        bash benchmarks/record_commits.sh "$M" ${ASV_COMMITS:-HEAD}
+      mkdir -p "$OUT/asv" && cp -r "benchmarks/results/$M" "$OUT/asv/" ;;
     *) echo "unknown step $step" ;;
   esac
 done
