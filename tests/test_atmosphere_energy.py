@@ -229,7 +229,8 @@ def test_density_shifts_of_an_atmosphere_at_rest_create_no_energy(backend):
     # environment (dT = -Gamma_env dy), so the anomaly stays 0 up to the float32 rounding of T (about 1 J here).
     plain = settling_atmosphere(False, backend)
     kept = settling_atmosphere(True, backend)
-    assert plain[0]["potential_energy"] == 0.0 and kept[0]["potential_energy"] == 0.0
+    # At the start T = T0(y) up to float32 rounding (0 J on the CPU, 0.009 J on an H100, whose T0(y) is fused)
+    assert plain[0]["potential_energy"] < 0.1 and kept[0]["potential_energy"] < 0.1
     assert plain[1]["potential_energy"] > 1e4 and plain[2]["kinetic_energy"] > 1e3
     assert kept[1]["potential_energy"] < 10.0 and kept[2]["kinetic_energy"] < 10.0
     assert kept[2]["potential_energy"] < 1e-3 * plain[2]["potential_energy"]
