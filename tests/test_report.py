@@ -490,3 +490,23 @@ def test_animation_is_a_looping_gif_and_a_strip_of_every_frame(tmp_path):
     # the first frame (no cloud) differs from the last (cloud)
     assert np.abs(pixels[:, :80] - pixels[:, 160:]).mean() > 0.5
     assert render.render_or_note(render.render_animation, tmp_path / "b.gif", [], slab) is None
+
+
+def test_render_elsewhere_keeps_what_the_renders_read_and_thins_only_the_animation():
+    import importlib.util
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location("render_elsewhere", Path(__file__).resolve().parents[1]
+                                                  / "scripts" / "render_elsewhere.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rng = np.random.default_rng(0)
+    n = 2000
+    state = {"position": rng.random((n, 3)), "cloud": np.where(rng.random(n) < 0.3, 1e-3, 0.0), "mass": np.ones(n),
+             "velocity": rng.random((n, 3)), "id": np.arange(n), "level": np.zeros(n, int)}
+    whole = mod._cut(state, False)
+    assert set(whole) == {"position", "cloud", "mass", "level"} and len(whole["cloud"]) == n
+    frames = mod._cut([(0.0, state), (10.0, state)], False)
+    kept = frames[1][1]
+    assert [t for t, _ in frames] == [0.0, 10.0]
+    assert (kept["cloud"] > 0).sum() == (state["cloud"] > 0).sum()          # every cloudy particle stays
+    assert len(kept["cloud"]) < 0.45 * n                                       # clear ones thinned to about 10%
