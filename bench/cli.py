@@ -9,7 +9,7 @@
     cloudpbf scaling                         ms per step against particle and cell counts
     cloudpbf report                          HTML report from OUT/data
     cloudpbf demo                            all of the above at a scale that fits this machine
-    cloudpbf export RUN --format vtp         a run's snapshots for ParaView (vtu, vtp) or xarray (netcdf, zarr)
+    cloudpbf export RUN --format vtp         a run's snapshots for ParaView (vtu, vtp), Houdini (bgeo) or xarray (netcdf, zarr)
     cloudpbf adaptive-cost                   split and merge cost of the adaptive scenes (GPU benchmark)
     cloudpbf constant-gravity                growing with a constant gravity added (the cycling deviation)
     cloudpbf pbf-scaling                     ms per particle step at given sizes, one CSV (GPU benchmark)
@@ -181,6 +181,7 @@ def demo(
 class ExportFormat(str, Enum):
     vtu = "vtu"
     vtp = "vtp"
+    bgeo = "bgeo"
     netcdf = "netcdf"
     zarr = "zarr"
 
@@ -189,19 +190,21 @@ class ExportFormat(str, Enum):
 def export(
     run_dir: Annotated[Path, typer.Argument(metavar="RUN", help="a run directory (printed by `cloudpbf run`)")],
     format: Annotated[ExportFormat, typer.Option("--format", "-f", help="vtu/vtp: a ParaView time series (.pvd "
-                                                 "+ one file per snapshot); netcdf/zarr: an xarray Dataset "
-                                                 "(time, x, y, z) with CF attributes")] = ExportFormat.vtp,
+                                                 "+ one file per snapshot); bgeo: Houdini, NAME.0001.bgeo, ... "
+                                                 "one per snapshot (particle runs); netcdf/zarr: an xarray "
+                                                 "Dataset (time, x, y, z) with CF attributes")] = ExportFormat.vtp,
     out: Annotated[Optional[Path], typer.Option("--out", help="where to write (default: RUN/export/...)")] = None,
     resolution: Annotated[Optional[str], typer.Option(
         help="netcdf/zarr of a particle run: deposition grid nx,ny,nz (default: one cell per particle spacing, "
              "the grid baseline's grid)")] = None,
 ) -> None:
-    """Export a run's stored snapshots for ParaView (vtu, vtp) or xarray (netcdf, zarr).
+    """Export a run's stored snapshots for ParaView (vtu, vtp), Houdini (bgeo) or xarray (netcdf, zarr).
 
-    Particle runs: every particle with every field (units in the field data) as .vtu/.vtp, or deposited
+    Particle runs: every particle with every field (units in the field data) as .vtu/.vtp or as
+    Houdini's classic .bgeo (P, v and every field, units and time in detail attributes), or deposited
     on the grid baseline's grid as NetCDF/zarr, so a particle run and a grid run of one scene compare cell
-    by cell.  Grid runs: the cell-centred fields.  (.bgeo: no maintained writer exists on PyPI.)"""
-    from bench.export import export_run
+    by cell.  Grid runs: the cell-centred fields (vtu, vtp, netcdf, zarr)."""
+    from bench.export import FormatError, export_run
     cells = parse_list(resolution, "--resolution", int, 1, 4096, "64,64,64")
     if cells is not None and len(cells) != 3:
         raise typer.BadParameter(f"'{resolution}': expected three cell counts nx,ny,nz", param_hint="'--resolution'")
@@ -209,9 +212,15 @@ def export(
         path = export_run(run_dir, format.value, out, resolution=tuple(cells) if cells else None)
     except FileNotFoundError as exc:
         raise typer.BadParameter(str(exc), param_hint="'RUN'") from None
+    except FormatError as exc:
+        raise typer.BadParameter(str(exc), param_hint="'--format'") from None
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None
-    typer.echo(f"wrote {path}")
+    if format is ExportFormat.bgeo:
+        frames = sorted(path.glob("*.bgeo"))
+        typer.echo(f"wrote {path}: {len(frames)} frames, {frames[0].name} .. {frames[-1].name}")
+    else:
+        typer.echo(f"wrote {path}")
 
 
 app.command("grid-scaling")(grid_scaling_command)

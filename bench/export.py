@@ -1,9 +1,14 @@
-"""Export runs for ParaView and xarray: ``cloudpbf export RUN --format vtu|vtp|netcdf|zarr``.
+"""Export runs for ParaView, Houdini and xarray: ``cloudpbf export RUN --format vtu|vtp|bgeo|netcdf|zarr``.
 
 * ``vtp`` / ``vtu``: every stored snapshot of the run as one VTK file (particles: points with every
   per-particle field; grid: the cell centres with every field), plus ``<name>.pvd``, the time series
   ParaView opens (File > Open the .pvd, the time slider steps through the snapshots in simulated
   seconds).  Units are in each file's field data (``<field>_unit``).
+* ``bgeo`` (particle runs only): Houdini's classic binary geometry, one ``<name>.0001.bgeo``,
+  ``<name>.0002.bgeo``, ... per snapshot in time order (a File SOP reading ``<name>.$F4.bgeo`` plays
+  them), written by :mod:`pbf_cuda.bgeo` (numpy, no partio needed): ``P``, the vector ``v`` (m/s) and
+  every other per-particle field under its own name; detail attributes ``time`` (s), ``step``,
+  ``scene`` and ``<attribute>_unit``.  A grid run asked for bgeo raises :class:`FormatError`.
 * ``netcdf`` / ``zarr``: one ``xarray.Dataset`` with dimensions ``(time, x, y, z)`` on the cell
   centres, CF attributes on every variable.  Grid runs give their own fields; particle runs give
   their particles deposited with the SPH poly6 kernel (``bench.statistics.deposit``: density,
@@ -13,10 +18,6 @@
 
 Python: :func:`run_to_xarray`, :func:`particles_to_xarray`, :func:`combine_solvers` (both solvers'
 Datasets along a ``solver`` dimension), :func:`export_run`.
-
-Houdini's ``.bgeo``: no maintained writer exists on PyPI (``partio``'s Python wrapper there dates
-from 2021 and has no wheels for current Pythons), so it is not offered; Houdini reads the ``.vtu`` /
-``.vtp`` files through its VTK importers or the NetCDF through Python SOPs.
 """
 from __future__ import annotations
 
@@ -29,12 +30,19 @@ from typing import Mapping
 import numpy as np
 
 from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
-from pbf_cuda.export import FIELD_ATTRS, write_particle_series
+from pbf_cuda.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
 
-__all__ = ["FORMATS", "particles_to_xarray", "run_to_xarray", "combine_solvers", "export_run", "run_info"]
+__all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "particles_to_xarray", "run_to_xarray", "combine_solvers",
+           "export_run", "run_info"]
 
-FORMATS = ("vtu", "vtp", "netcdf", "zarr")
-SUFFIX = {"vtu": "", "vtp": "", "netcdf": ".nc", "zarr": ".zarr"}
+FORMATS = ("vtu", "vtp", "bgeo", "netcdf", "zarr")
+PARTICLE_ONLY = ("bgeo",)
+"""Formats of particle runs only (a grid run has cells, not particles)."""
+SUFFIX = {"vtu": "", "vtp": "", "bgeo": "", "netcdf": ".nc", "zarr": ".zarr"}
+
+
+class FormatError(ValueError):
+    """A format the run cannot be exported in (unknown, or bgeo for a grid run)."""
 
 
 def _scene_from_identity(identity: Mapping):
@@ -111,15 +119,22 @@ def combine_solvers(datasets: Mapping[str, object]):
 
 def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, resolution=None) -> Path:
     """Write a run's snapshots in `fmt` (see :data:`FORMATS`); returns what was written (the .pvd for
-    vtu/vtp, the file or store for netcdf/zarr).  Default `out`: ``RUN/export/<run name>`` plus the
-    format's suffix (``.nc``, ``.zarr``; a folder for vtu/vtp)."""
+    vtu/vtp, the folder of ``<name>.NNNN.bgeo`` files for bgeo, the file or store for netcdf/zarr).
+    Default `out`: ``RUN/export/<run name>`` plus the format's suffix (``.nc``, ``.zarr``; a folder for
+    vtu/vtp/bgeo).  Raises :class:`FormatError` for an unknown format or bgeo of a grid run."""
     if fmt not in FORMATS:
-        raise ValueError(f"format {fmt!r}: allowed {', '.join(FORMATS)}")
+        raise FormatError(f"format {fmt!r}: allowed {', '.join(FORMATS)}")
     run_dir = Path(run_dir)
     info = run_info(run_dir)
+    if fmt in PARTICLE_ONLY and info["solver"] != "particles":
+        allowed = ", ".join(f for f in FORMATS if f not in PARTICLE_ONLY)
+        raise FormatError(f"format {fmt!r} holds particles; a {info['solver']} run exports as {allowed}")
     scene = _scene_from_identity(info["identity"])
     name = f"{info['solver']}-{scene.name}"
     out = Path(out) if out is not None else run_dir / "export" / f"{name}{SUFFIX[fmt]}"
+    if fmt == "bgeo":
+        write_bgeo_series((_load_npz(p) for p in info["snapshots"]), out, name=name, scene_name=scene.name)
+        return out
     if fmt in ("vtu", "vtp"):
         frames = [ADAPTERS[info["solver"]].snapshot_points(_load_npz(p)) for p in info["snapshots"]]
         return write_particle_series(frames, out, fmt=fmt, name=name, scene_name=scene.name)

@@ -1,4 +1,5 @@
-"""Exports for the tools of the field: ParaView (VTK through pyvista) and xarray (NetCDF, zarr).
+"""Exports for the tools of the field: ParaView (VTK through pyvista), Houdini (.bgeo) and xarray
+(NetCDF, zarr).
 
 Pure Python + numpy at import time; pyvista and xarray are imported when a function needs them
 (``pip install "cloudpbf[viz]"`` for VTK, ``"cloudpbf[io]"`` for xarray, NetCDF and zarr).
@@ -9,6 +10,11 @@ Pure Python + numpy at import time; pyvista and xarray are imported when a funct
   are the simulated time (``TimeValue``, s) and the step.
 * :func:`write_pvd` writes a ParaView collection (``.pvd``) that makes a series of such files one
   time series (ParaView's time slider reads the ``timestep`` attribute: simulated seconds).
+* :func:`state_to_bgeo` and :func:`write_bgeo_series` write particle states as Houdini's classic
+  binary geometry (:mod:`pbf_cuda.bgeo`, numpy only): one ``name.0001.bgeo`` per frame, the frame
+  number Houdini's ``$F4`` expands to (1, 2, ... in time order), positions as ``P``, ``velocity``
+  as the vector attribute ``v``, every other per-particle field under its own name (``id`` and
+  ``level`` as int), and detail attributes ``time`` (s), ``step``, ``scene`` and ``<attribute>_unit``.
 * :func:`fields_to_xarray` turns gridded fields (the grid baseline's ``fields()`` or particles
   deposited by ``bench.statistics.deposit``) into an ``xarray.Dataset`` on cell-centre coordinates
   ``x``, ``y``, ``z`` (m) with CF attributes (``units``, ``standard_name``, ``long_name``, ``axis``),
@@ -23,14 +29,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 from typing import Iterable, Mapping
+from glob import escape as glob_escape
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
 from .files import atomic_path, atomic_write_text
 
-__all__ = ["PARTICLE_UNITS", "FIELD_ATTRS", "COORD_ATTRS", "state_to_pyvista", "write_pvd",
-           "write_particle_series", "read_pvd", "fields_to_xarray", "CONVENTIONS"]
+__all__ = ["PARTICLE_UNITS", "FIELD_ATTRS", "COORD_ATTRS", "BGEO_NAMES", "state_to_pyvista", "write_pvd",
+           "write_particle_series", "read_pvd", "state_to_bgeo", "write_bgeo_series", "fields_to_xarray",
+           "CONVENTIONS"]
 
 CONVENTIONS = "CF-1.11"
 
@@ -153,6 +161,67 @@ def write_particle_series(frames: Iterable[Mapping[str, np.ndarray]], out_dir: s
             mesh.save(tmp)
         entries.append((time, file))
     return write_pvd(entries, out / f"{name}.pvd")
+
+
+# ---- particles -> Houdini .bgeo ------------------------------------------------------------------
+BGEO_NAMES = {"position": "P", "velocity": "v"}
+"""Houdini's names for the state's fields; every other field keeps its own name."""
+
+
+def state_to_bgeo(state: Mapping[str, np.ndarray], time: float | None = None, step: int | None = None,
+                  scene_name: str | None = None):
+    """(position, point attributes, detail attributes) of a particle state, as
+    :func:`pbf_cuda.bgeo.write_bgeo` takes them.
+
+    ``velocity`` becomes the vector ``v``; every other per-particle array keeps its name (scalars such as
+    ``step`` and arrays of another length are skipped); ``id`` (uint32) is stored as int, the format's
+    only integer.  The detail holds ``<attribute>_unit`` for ``P`` and every attribute
+    (:data:`PARTICLE_UNITS`), and ``time`` (s, float32), ``step`` and ``scene`` when given."""
+    if "position" not in state:
+        raise KeyError(f"particle state lacks 'position' (has: {', '.join(sorted(state))})")
+    pos = np.asarray(state["position"]).reshape(-1, 3)
+    n = len(pos)
+    attributes, detail = {}, {"P_unit": PARTICLE_UNITS["position"]}
+    for name, value in state.items():
+        arr = np.asarray(value)
+        if name == "position" or arr.ndim == 0 or len(arr) != n:
+            continue
+        houdini = BGEO_NAMES.get(name, name)
+        attributes[houdini] = arr
+        detail[f"{houdini}_unit"] = PARTICLE_UNITS.get(name, "")
+    if time is not None:
+        detail["time"] = float(time)
+    if step is not None:
+        detail["step"] = int(step)
+    if scene_name:
+        detail["scene"] = str(scene_name)
+    return pos, attributes, detail
+
+
+def write_bgeo_series(frames: Iterable[Mapping[str, np.ndarray]], out_dir: str | Path, name: str = "particles",
+                      scene_name: str | None = None) -> list[Path]:
+    """Write particle states as ``out_dir/name.0001.bgeo``, ``name.0002.bgeo``, ... (frames numbered
+    from 1 in the given order, four digits or more, as Houdini's ``$F4`` and SPlisHSPlasH's exports
+    name them); each file's detail holds the frame's ``time`` (s) and ``step``.  Frames are state dicts
+    as for :func:`write_particle_series`.  Frames of an earlier, longer series of the same name in
+    `out_dir` are removed, so Houdini plays this series only.  Returns the paths written."""
+    import re
+    from .bgeo import write_bgeo
+    frames = list(frames)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    width = max(4, len(str(len(frames))))
+    paths = []
+    for i, frame in enumerate(frames):
+        step = int(np.asarray(frame.get("step", i)))
+        time = float(np.asarray(frame.get("time_s", frame.get("time", 0.0))))
+        pos, attributes, detail = state_to_bgeo(frame, time=time, step=step, scene_name=scene_name)
+        paths.append(write_bgeo(out / f"{name}.{i + 1:0{width}d}.bgeo", pos, attributes, detail))
+    frame_name = re.compile(re.escape(name) + r"\.\d{4,}\.bgeo")
+    for stale in set(out.glob(f"{glob_escape(name)}.*.bgeo")) - set(paths):
+        if frame_name.fullmatch(stale.name):
+            stale.unlink()
+    return paths
 
 
 # ---- grids -> xarray ---------------------------------------------------------------------------

@@ -154,6 +154,16 @@ def test_cli_export_particle_run_all_formats(particle_sim, tmp_path):
     np.testing.assert_array_equal(mesh.point_data["cloud"], last["cloud"])
     assert entries[-1][0] == pytest.approx(float(last["time_s"]))
 
+    res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo", "--out", str(tmp_path / "bgeo")])
+    assert res.exit_code == 0, res.output
+    from pbf_cuda.bgeo import read_bgeo
+    frames = sorted((tmp_path / "bgeo").glob("particles-growing.*.bgeo"))
+    assert len(frames) == len(snaps) and frames[0].name == "particles-growing.0001.bgeo"
+    back = read_bgeo(frames[-1])
+    assert back.points["P"].tobytes() == last["position"].tobytes()
+    assert back.points["cloud"].tobytes() == last["cloud"].tobytes()
+    assert back.detail["step"] == int(last["step"])
+
     for fmt, suffix in (("netcdf", ".nc"), ("zarr", ".zarr")):
         res = runner.invoke(app, ["export", str(run_dir), "--format", fmt])
         assert res.exit_code == 0, res.output
@@ -191,8 +201,58 @@ def test_cli_export_grid_run_netcdf(tmp_path):
     assert mesh.n_points == ds.sizes["x"] * ds.sizes["y"] * ds.sizes["z"]
 
 
+def _stored_run(root, solver, frames):
+    """A run directory as `cloudpbf run` leaves it (config.json identity, snapshots/step_*.npz), made
+    without the solver, so the export path runs where the compiled solver is absent."""
+    from pbf_cuda import load_scene
+    from pbf_cuda.files import json_default
+    scene = load_scene("growing").to_dict()
+    scene["scene"] = {"name": "growing"}
+    run_dir = root / f"{solver}-growing-0123456789abcdef"
+    (run_dir / "snapshots").mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps({"identity": {"solver": solver, "scene": scene}},
+                                                    default=json_default))
+    for frame in frames:
+        np.savez(run_dir / "snapshots" / f"step_{int(frame['step']):06d}.npz", **frame)
+    return run_dir
+
+
+def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
+    from pbf_cuda.bgeo import read_bgeo
+    rng = np.random.default_rng(6)
+    frames = [_fake_state(40, rng, 0, 0.0), _fake_state(45, rng, 10, 20.0), _fake_state(50, rng, 20, 40.0)]
+    run_dir = _stored_run(tmp_path, "particles", frames)
+    res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo"])
+    assert res.exit_code == 0, res.output
+    folder = run_dir / "export" / "particles-growing"
+    names = [f"particles-growing.000{i}.bgeo" for i in (1, 2, 3)]
+    assert res.output.strip() == f"wrote {folder}: 3 frames, {names[0]} .. {names[-1]}"
+    assert sorted(p.name for p in folder.iterdir()) == names
+    for name, frame in zip(names, frames):
+        back = read_bgeo(folder / name)
+        assert back.points["P"].tobytes() == frame["position"].tobytes()
+        assert back.points["v"].tobytes() == frame["velocity"].tobytes() and back.types["v"] == "vector"
+        for field in ("temperature", "vapor", "cloud", "mass", "kernel_radius"):
+            assert back.points[field].tobytes() == frame[field].tobytes()
+        np.testing.assert_array_equal(back.points["id"], frame["id"].astype(np.int64))
+        np.testing.assert_array_equal(back.points["level"], frame["level"])
+        assert back.detail["step"] == int(frame["step"]) and back.detail["time"] == float(frame["time_s"])
+        assert back.detail["scene"] == "growing" and back.detail["temperature_unit"] == "K"
+    res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo", "--out", str(tmp_path / "houdini")])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (tmp_path / "houdini").iterdir()) == names
+
+
 def test_cli_export_errors(tmp_path):
     res = runner.invoke(app, ["export", str(tmp_path), "--format", "vtp"])
     assert res.exit_code == 2 and "not a run directory" in res.output
-    res = runner.invoke(app, ["export", str(tmp_path), "--format", "bgeo"])
-    assert res.exit_code == 2 and "'bgeo' is not one of" in res.output
+    res = runner.invoke(app, ["export", str(tmp_path), "--format", "obj"])
+    assert res.exit_code == 2 and "'obj' is not one of" in res.output and "'bgeo'" in res.output
+    grid = {"x": np.arange(2.0), "y": np.arange(3.0), "z": np.arange(2.0), "cloud": np.zeros((2, 3, 2)),
+            "step": np.int64(0), "time_s": np.float64(0.0)}
+    run_dir = _stored_run(tmp_path, "grid", [grid])
+    res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo"])
+    assert res.exit_code == 2, res.output
+    message = " ".join(res.output.split())
+    assert "'--format'" in message and "a grid run exports as vtu, vtp, netcdf, zarr" in message
+    assert not (run_dir / "export").exists()
