@@ -201,7 +201,7 @@ def state_to_bgeo(state: Mapping[str, np.ndarray], time: float | None = None, st
 def write_bgeo_series(frames: Iterable[Mapping[str, np.ndarray]], out_dir: str | Path, name: str = "particles",
                       scene_name: str | None = None) -> list[Path]:
     """Write particle states as ``out_dir/name.0001.bgeo``, ``name.0002.bgeo``, ... (frames numbered
-    from 1 in the given order, four digits or more, as Houdini's ``$F4`` and SPlisHSPlasH's exports
+    from 1 in the given order, four digits or more, the names Houdini's ``$F4`` expands to
     name them); each file's detail holds the frame's ``time`` (s) and ``step``.  Frames are state dicts
     as for :func:`write_particle_series`.  Frames of an earlier, longer series of the same name in
     `out_dir` are removed, so Houdini plays this series only.  Returns the paths written."""
