@@ -96,7 +96,7 @@ inline void merge_pairs(SolverData& d, const CellRanges& fl) {
 // the capacity lasts. Returns (winners, splits): winners - splits were turned away for want of room.
 inline std::pair<std::size_t, std::size_t> split_particles(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
-    auto cand_end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+    auto cand_end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
                                     thrust::counting_iterator<uint32_t>(uint32_t(d.n)), d.split_candidates.begin(),
                                     HasFlag{raw(d.flags), kSplitCandidate});
     std::size_t candidates = std::size_t(cand_end - d.split_candidates.begin());
@@ -105,7 +105,7 @@ inline std::pair<std::size_t, std::size_t> split_particles(SolverData& d, const 
         parallel_for_teams(candidates, DecideSplits{d.grid, fl, d.ap, d.radii, raw(d.split_candidates), raw(d.energy),
                                                     raw(d.id), raw(d.flags), raw(d.split_count), uint32_t(d.step)});
         // Inclusive scan: one read of its last element gives the number of winners.
-        thrust::inclusive_scan(thrust::device, d.split_count.begin(), d.split_count.begin() + candidates,
+        thrust::inclusive_scan(exec(), d.split_count.begin(), d.split_count.begin() + candidates,
                                d.split_slot.begin());
         winners = std::size_t(uint32_t(d.split_slot[candidates - 1]));
     }
@@ -120,14 +120,14 @@ inline std::pair<std::size_t, std::size_t> split_particles(SolverData& d, const 
     }
     d.next_id += uint32_t(splits);
     if (splits && d.p.velocity_projection)   // new children start their warm start from zero
-        thrust::fill(thrust::device, d.cg_mu.begin() + d.n, d.cg_mu.begin() + d.n + splits, 0.0f);
+        thrust::fill(exec(), d.cg_mu.begin() + d.n, d.cg_mu.begin() + d.n + splits, 0.0f);
     d.n += splits;
     return {winners, splits};
 }
 
 // Drop the particles consumed by merges (kept in order, deterministic); returns how many.
 inline std::size_t compact(SolverData& d) {
-    auto end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+    auto end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
                                thrust::counting_iterator<uint32_t>(uint32_t(d.n)), d.perm.begin(), IsAlive{raw(d.flags)});
     std::size_t alive = std::size_t(end - d.perm.begin());
     std::size_t merges = d.n - alive;

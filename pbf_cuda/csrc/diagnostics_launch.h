@@ -226,13 +226,13 @@ inline std::string check(SolverData& d) {
     std::vector<uint32_t> ids;
     if (r.bad > 0) {
         dvec<uint32_t> idx(d.n);
-        auto end = thrust::copy_if(thrust::device, thrust::counting_iterator<uint32_t>(0),
+        auto end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
                                    thrust::counting_iterator<uint32_t>(uint32_t(d.n)), idx.begin(),
                                    IsBad{make_check(d)});
         std::size_t nbad = std::min<std::size_t>(std::size_t(end - idx.begin()), 16);
         // Gather the ids on the device, then one copy to the host.
         dvec<uint32_t> bad_ids(nbad);
-        thrust::gather(thrust::device, idx.begin(), idx.begin() + nbad, d.id.begin(), bad_ids.begin());
+        thrust::gather(exec(), idx.begin(), idx.begin() + nbad, d.id.begin(), bad_ids.begin());
         ids.resize(nbad);
         thrust::copy(bad_ids.begin(), bad_ids.end(), ids.begin());
     }

@@ -104,18 +104,18 @@ inline void allocate_grid(SolverData& d) {
 inline void build_neighbor_grid(SolverData& d) {
     const bool nested = d.p.adaptive;
     parallel_for(d.n, ComputeKeys{d.grid, raw(d.pred), raw(d.keys), nested});
-    thrust::sequence(thrust::device, d.perm.begin(), d.perm.begin() + d.n);
-    thrust::sort_by_key(thrust::device, d.keys.begin(), d.keys.begin() + d.n, d.perm.begin());
+    thrust::sequence(exec(), d.perm.begin(), d.perm.begin() + d.n);
+    thrust::sort_by_key(exec(), d.keys.begin(), d.keys.begin() + d.n, d.perm.begin());
     d.permute_all(true);
     if (!nested) {
-        thrust::fill(thrust::device, d.cell_start.begin(), d.cell_start.end(), 0u);
-        thrust::fill(thrust::device, d.cell_end.begin(), d.cell_end.end(), 0u);
+        thrust::fill(exec(), d.cell_start.begin(), d.cell_start.end(), 0u);
+        thrust::fill(exec(), d.cell_end.begin(), d.cell_end.end(), 0u);
         parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.cell_start), raw(d.cell_end)});
         return;
     }
     // Adaptive: sub-cell ranges from the nested keys, then each cell's range and largest radius from them.
-    thrust::fill(thrust::device, d.sub_start.begin(), d.sub_start.end(), 0u);
-    thrust::fill(thrust::device, d.sub_end.begin(), d.sub_end.end(), 0u);
+    thrust::fill(exec(), d.sub_start.begin(), d.sub_start.end(), 0u);
+    thrust::fill(exec(), d.sub_end.begin(), d.sub_end.end(), 0u);
     parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.sub_start), raw(d.sub_end)});
     parallel_for(d.sub_start.size(), SubCellRadius{d.radii, raw(d.pred), raw(d.sub_start), raw(d.sub_end),
                                                    raw(d.sub_radius)});

@@ -5,6 +5,14 @@
 //   parallel_for(n, f)          f(i) for i in [0, n): a Thrust for_each (a CUDA kernel, or an OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce)
+//   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
+//
+// On the GPU every call is asynchronous on the default stream: exec() is Thrust's par_nosync with a caching
+// allocator for the temporary storage of sorts, scans and reductions. Thrust's plain thrust::device policy
+// synchronises the stream after every algorithm and allocates (cudaMalloc / cudaFree, both synchronising) the
+// temporary storage of each one: a step of ~100 launches then waits for the GPU ~100 times, which is what a
+// small scene's step was made of (docs/benchmarks.md, "Launch overhead"). Only what the host must read
+// (a reduction's value, copy_if's count, the per-step timers) waits now.
 #pragma once
 #ifndef PBF_BACKEND_NS
 #error "launch.h belongs to a backend: backend_cpu.cpp or backend_cuda.cu define PBF_BACKEND_NS and include solver_impl.inl"
@@ -23,6 +31,9 @@
 #include <thrust/transform_reduce.h>
 
 #include <chrono>
+#include <map>
+#include <mutex>
+#include <new>
 #include <cstddef>
 #include <cstdint>
 #include <stdexcept>
@@ -51,17 +62,66 @@ T* raw(dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
 template <class T>
 const T* raw(const dvec<T>& v) { return thrust::raw_pointer_cast(v.data()); }
 
+#ifdef PBF_BACKEND_CUDA
+// Temporary storage of Thrust's algorithms, kept for reuse: freed blocks go to a free list (by size) and the
+// next request of at most that size takes one, so a step allocates nothing once the first steps have run.
+// Every call runs on the default stream, so a block handed back before its kernel finished is only reused by
+// work queued after that kernel. Shared by all solvers of the process (a mutex guards the lists).
+class CachingTempAllocator {
+public:
+    using value_type = char;
+    char* allocate(std::ptrdiff_t bytes) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        auto it = free_.lower_bound(std::size_t(bytes));
+        char* ptr = nullptr;
+        std::size_t size = std::size_t(bytes);
+        if (it != free_.end()) {
+            ptr = it->second;
+            size = it->first;
+            free_.erase(it);
+        } else if (cudaMalloc(reinterpret_cast<void**>(&ptr), size) != cudaSuccess) {
+            cudaGetLastError();
+            throw std::bad_alloc();
+        }
+        used_[ptr] = size;
+        return ptr;
+    }
+    void deallocate(char* ptr, std::size_t) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        auto it = used_.find(ptr);
+        if (it == used_.end()) return;
+        free_.emplace(it->second, ptr);
+        used_.erase(it);
+    }
+
+private:
+    std::mutex mutex_;
+    std::multimap<std::size_t, char*> free_;
+    std::map<char*, std::size_t> used_;
+};
+
+// The process's allocator; never destroyed (its blocks live as long as the CUDA context).
+inline CachingTempAllocator& temp_allocator() {
+    static CachingTempAllocator* a = new CachingTempAllocator();
+    return *a;
+}
+
+inline auto exec() { return thrust::cuda::par_nosync(temp_allocator()); }
+#else
+inline auto exec() { return thrust::device; }
+#endif
+
 template <class F>
 void parallel_for(std::size_t n, const F& f) {
     if (n == 0) return;
-    thrust::for_each(thrust::device, thrust::counting_iterator<uint32_t>(0),
-                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f);
+    thrust::for_each(exec(), thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n)),
+                     f);
 }
 
-// op-reduction of f(i) over i in [0, n), starting from init.
+// op-reduction of f(i) over i in [0, n), starting from init (the host waits for the value).
 template <class T, class F, class Op>
 T reduce_over(std::size_t n, const F& f, T init, Op op) {
-    return thrust::transform_reduce(thrust::device, thrust::counting_iterator<uint32_t>(0),
+    return thrust::transform_reduce(exec(), thrust::counting_iterator<uint32_t>(0),
                                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f, init, op);
 }
 

@@ -98,7 +98,7 @@ struct SolverData {
     // predicted positions) and the compaction after merges (with each particle's last density).
     template <class T>
     void permute(dvec<T>& a, dvec<T>& tmp) {
-        thrust::gather(thrust::device, perm.begin(), perm.begin() + n, a.begin(), tmp.begin());
+        thrust::gather(exec(), perm.begin(), perm.begin() + n, a.begin(), tmp.begin());
         a.swap(tmp);
     }
     void permute_all(bool with_pred) {

@@ -149,7 +149,7 @@ public:
 
     void adapt_now() override {
         if (!d_.p.adaptive) throw std::invalid_argument("adapt_now: the scene is not adaptive");
-        thrust::copy(thrust::device, d_.pos.begin(), d_.pos.begin() + d_.n, d_.pred.begin());
+        thrust::copy(exec(), d_.pos.begin(), d_.pos.begin() + d_.n, d_.pred.begin());
         build_neighbor_grid(d_);
         adapt(d_);
         d_.clock.collect(d_.totals);
