@@ -14,6 +14,7 @@
     cloudpbf constant-gravity                growing with a constant gravity added (the cycling deviation)
     cloudpbf pbf-scaling                     ms per particle step at given sizes, one CSV (GPU benchmark)
     cloudpbf grid-scaling                    ms per grid step at n^3 cells on CPU and GPU, one CSV
+    cloudpbf budgets ; cloudpbf cbl          both solvers' heat and water budgets; the dry boundary layer
     cloudpbf --version                       the installed version
 
 Lists are comma-separated everywhere: --sizes 250000,1000000 --gravity 0.1,0.3.

@@ -65,8 +65,9 @@ GpusOpt = Annotated[Optional[str], typer.Option(
 
 
 # ---- helpers ------------------------------------------------------------------------------------
-def scene_arg(name: str, overrides: dict | None = None):
-    """A scene by name or path; unknown names list the shipped scenes (exit code 2)."""
+def scene_arg(name: str, overrides: dict | None = None, param: str = "SCENE"):
+    """A scene by name or path; unknown names list the shipped scenes (exit code 2, naming `param`: the
+    argument or option that gave the name)."""
     from pbf_cuda.scene import SceneError, list_scenes, load_scene
     path = Path(name)
     try:
@@ -77,7 +78,7 @@ def scene_arg(name: str, overrides: dict | None = None):
         if len(name) > 80:
             name = name[:77] + "..."
         raise typer.BadParameter(f"unknown scene '{name}'; shipped scenes: {', '.join(list_scenes())} "
-                                 f"(or a path to a .toml file)", param_hint="'SCENE'")
+                                 f"(or a path to a .toml file)", param_hint=f"'{param}'")
     try:
         return load_scene(name, **(overrides or {}))
     except SceneError as exc:

@@ -136,7 +136,7 @@ def grid_scaling_command(
     bad = [d for d in kinds or [] if d not in ("float32", "float64")]
     if bad:
         raise typer.BadParameter(f"'{bad[0]}': allowed float32, float64", param_hint="'--dtypes'")
-    scene_arg(scene)
+    scene_arg(scene, param="--scene")
     try:
         run_grid_scaling(cells, steps=steps, warmup=warmup, scene=scene, devices=devices, dtypes=kinds,
                          out=out, commit=commit, echo=typer.echo)

@@ -33,7 +33,7 @@ def test_version_is_the_package_metadata():
 
 
 @pytest.mark.parametrize("command", ["run", "export", "adaptive-cost", "constant-gravity", "pbf-scaling",
-                                     "grid-scaling", "demo", "scaling"])
+                                     "grid-scaling", "demo", "scaling", "budgets", "cbl"])
 def test_help_has_no_escaped_brackets(command):
     res = invoke(command, "--help")
     assert res.exit_code == 0
@@ -44,13 +44,20 @@ def test_help_has_no_escaped_brackets(command):
 def test_every_study_is_a_subcommand():
     names = {c.name or c.callback.__name__ for c in app.registered_commands}
     assert {"adaptive-cost", "constant-gravity", "pbf-scaling", "grid-scaling", "export", "table1", "compare",
-            "sweep", "stress", "scaling", "demo"} <= names
+            "sweep", "stress", "scaling", "demo", "budgets", "cbl"} <= names
+    # no study keeps a command line of its own (argparse) beside the cloudpbf one
+    for module in sorted((REPO / "bench" / "studies").glob("*.py")):
+        assert "argparse" not in module.read_text(), module.name
 
 
 @pytest.mark.parametrize("args,expected", [
     (["constant-gravity", "--gravity", "0.1,abc"], "expected comma-separated floats"),
     (["constant-gravity", "--gravity", "0.1,500"], "'500.0': allowed range"),
-    (["adaptive-cost", "--scenes", "growing_adaptive,nosuch"], "unknown scene 'nosuch'"),
+    (["adaptive-cost", "--scenes", "growing_adaptive,nosuch"], "'--scenes': unknown scene 'nosuch'"),
+    (["budgets", "--scene", "nosuch"], "'--scene': unknown scene 'nosuch'"),
+    (["budgets", "--every", "0"], "Invalid value for '--every'"),
+    (["cbl", "--times", "200;400"], "'--times': '200;400': expected comma-separated floats"),
+    (["cbl", "--from-csv", "--out", "/nonexistent/cbl.csv"], "no such CSV to draw"),
     (["adaptive-cost", "--steps", "1"], "Invalid value for '--steps'"),
     (["pbf-scaling", "--sizes", "250000;1000000"], "expected comma-separated integers"),
     (["grid-scaling", "--dtypes", "float16"], "'float16': allowed float32, float64"),
@@ -67,6 +74,9 @@ def test_module_entry_points_forward_to_the_cli():
     out = subprocess.run([sys.executable, "-m", "bench.studies.constant_gravity", "--gravity", "0.1,x"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "comma-separated floats" in out.stderr
+    out = subprocess.run([sys.executable, "-m", "bench.studies.cbl", "--times", "200,x"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "'--times'" in out.stderr and "comma-separated floats" in out.stderr
 
 
 def _compiled():

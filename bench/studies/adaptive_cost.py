@@ -89,7 +89,7 @@ def adaptive_cost_command(
     """Split and merge ms per step of the adaptive scenes on a given level-0 spacing (GPU benchmark)."""
     names = parse_list(scenes, "--scenes", str, example="growing_adaptive,cycling_adaptive")
     for name in names:
-        scene_arg(name)
+        scene_arg(name, param="--scenes")
     if steps <= WARMUP_STEPS:
         raise typer.BadParameter(f"{steps}: must be > {WARMUP_STEPS} (the warm-up steps)", param_hint="'--steps'")
     frame = adaptive_cost(names, spacing, steps, backend.value, runs_root, quiet)

@@ -9,17 +9,22 @@ sample the heating pattern at the same sites) and writes, every `every` steps:
     heat_smoothing_total, heat_numerical_total (grid only), total_water, mass_centre_height,
     kinetic_energy, device, commit
 
-    python -m bench.studies.budgets --scene growing --particles 8000 --steps 250 \\
+    cloudpbf budgets --scene growing --particles 8000 --steps 250 \\
         --out reports/gpu/data/budgets.csv --plot reports/gpu/budgets.png
+
+(``python -m bench.studies.budgets ARGS`` is the same command.)  Not part of the demo.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+from typing import Annotated, Optional
 
 import numpy as np
+import typer
 
+from bench.cli_common import Backend, BackendOpt, QuietOpt, check_backend, run_command, scene_arg
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 COLUMNS = ("solver", "time_s", "step", "mean_temperature", "heat_source_total", "heat_latent_total",
@@ -91,24 +96,36 @@ def plot_budgets(frame, path):
     return save_png(fig, path)
 
 
+def budgets_command(
+    scene: Annotated[str, typer.Option(help="scene name")] = "growing",
+    particles: Annotated[int, typer.Option(min=0, max=100_000_000,
+                                           help="particle count (0: the scene file's spacing)")] = 8000,
+    steps: Annotated[Optional[int], typer.Option(min=1, max=1_000_000,
+                                                 help="steps (default: the scene's)")] = None,
+    every: Annotated[int, typer.Option(min=1, max=1_000_000, help="a budget row every this many steps")] = 10,
+    seed: Annotated[int, typer.Option(min=0, help="random seed")] = 0,
+    backend: BackendOpt = Backend.cpu,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/budgets.csv"),
+    plot: Annotated[Optional[Path], typer.Option(help="also draw the budgets as a PNG here")] = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Heat and water budgets of both solvers, side by side, for one scene (budgets.csv)."""
+    scene_arg(scene, param="--scene")
+    check_backend(backend)
+    frame = run_budgets(scene, particles or None, steps, every, seed, backend.value, quiet)
+    from bench import runs
+    runs.write_csv(frame, out)
+    typer.echo(f"wrote {out}")
+    if plot is not None:
+        typer.echo(f"wrote {plot_budgets(frame, plot)}")
+
+
+register(Study("budgets", order=90, outputs=("budgets.csv",), command=budgets_command))
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.studies.budgets", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="growing")
-    ap.add_argument("--particles", type=int, default=8000, help="particle count (0: the scene file's spacing)")
-    ap.add_argument("--steps", type=int, default=None)
-    ap.add_argument("--every", type=int, default=10)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--backend", default="cpu")
-    ap.add_argument("--out", type=Path, default=Path("reports/gpu/data/budgets.csv"))
-    ap.add_argument("--plot", type=Path, default=None)
-    args = ap.parse_args(argv)
-    frame = run_budgets(args.scene, args.particles or None, args.steps, args.every, args.seed, args.backend)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(args.out, index=False)
-    print(args.out)
-    if args.plot is not None:
-        print(plot_budgets(frame, args.plot))
-    return 0
+    """``python -m bench.studies.budgets ARGS`` is ``cloudpbf budgets ARGS``."""
+    return run_command(budgets_command, "budgets", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -25,20 +25,24 @@ then h = (theta_m - theta_ground) / gamma, the height where the initial profile 
 layer's potential temperature.  z0, the top of the warmed layer, includes the entrainment zone
 (penetrating thermals) and sits about 10-20% above h; it is reported beside h.
 
-    python -m bench.studies.cbl --out reports/gpu/data/cbl_profiles.csv
+    cloudpbf cbl --out reports/gpu/data/cbl_profiles.csv
 
 writes both solvers' mean potential-temperature profiles side by side (one row per time and height)
-and prints h, z0 and the encroachment depth.
+and prints h, z0 and the encroachment depth (``python -m bench.studies.cbl ARGS`` is the same command).
+Not part of the demo.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Annotated, Optional
 
 import numpy as np
+import typer
 
+from bench.cli_common import Backend, BackendOpt, QuietOpt, check_backend, parse_list, run_command, scene_arg
+from bench.studies.registry import Study, register
 from pbf_cuda.scene import Scene, load_scene
 
 PROFILE_COLUMNS = ("time_s", "z", "theta_particles", "theta_grid", "theta_initial", "h_theory", "h_particles",
@@ -191,27 +195,41 @@ def plot_profiles(frame, path: str | Path) -> Path:
     return save_png(fig, path)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.studies.cbl", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="dry_cbl")
-    ap.add_argument("--times", default="200,400,600", help="comma-separated times, s")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--backend", default="cpu")
-    ap.add_argument("--out", type=Path, default=Path("reports/gpu/data/cbl_profiles.csv"))
-    ap.add_argument("--plot", type=Path, default=None, help="also write the profiles as a PNG here")
-    ap.add_argument("--from-csv", action="store_true", help="plot the existing --out CSV without running")
-    args = ap.parse_args(argv)
-    if args.from_csv:
+def cbl_command(
+    scene: Annotated[str, typer.Option(help="scene name")] = "dry_cbl",
+    times: Annotated[str, typer.Option(help="simulated times, s, comma-separated")] = "200,400,600",
+    seed: Annotated[int, typer.Option(min=0, help="random seed")] = 0,
+    backend: BackendOpt = Backend.cpu,
+    out: Annotated[Path, typer.Option("--out", help="CSV to write (or to read with --from-csv)")] = Path(
+        "reports/gpu/data/cbl_profiles.csv"),
+    plot: Annotated[Optional[Path], typer.Option(help="also draw the profiles as a PNG here")] = None,
+    from_csv: Annotated[bool, typer.Option("--from-csv", help="draw the existing --out CSV without running")] = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Dry convective boundary layer: both solvers' mixed-layer depth against encroachment (cbl_profiles.csv)."""
+    if from_csv:
         import pandas as pd
-        frame = pd.read_csv(args.out)
+        if not out.is_file():
+            raise typer.BadParameter(f"'{out}': no such CSV to draw", param_hint="'--out'")
+        frame = pd.read_csv(out)
     else:
-        frame = run_profiles(args.scene, [float(t) for t in args.times.split(",")], args.seed, args.backend)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        frame.to_csv(args.out, index=False)
-        print(args.out)
-    if args.plot is not None:
-        print(plot_profiles(frame, args.plot))
-    return 0
+        scene_arg(scene, param="--scene")
+        check_backend(backend)
+        at = parse_list(times, "--times", float, 0.0, 1e7, example="200,400,600")
+        frame = run_profiles(scene, at, seed, backend.value, quiet)
+        from bench import runs
+        runs.write_csv(frame, out)
+        typer.echo(f"wrote {out}")
+    if plot is not None:
+        typer.echo(f"wrote {plot_profiles(frame, plot)}")
+
+
+register(Study("cbl", order=92, outputs=("cbl_profiles.csv",), command=cbl_command))
+
+
+def main(argv=None) -> int:
+    """``python -m bench.studies.cbl ARGS`` is ``cloudpbf cbl ARGS``."""
+    return run_command(cbl_command, "cbl", sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -132,7 +132,7 @@ def pbf_scaling_command(
 ) -> None:
     """ms per particle step at the given sizes, one CSV (the GPU benchmark form of `scaling`)."""
     counts = parse_sizes(sizes, "--sizes", 100)
-    scene_arg(scene)
+    scene_arg(scene, param="--scene")
     frame = pbf_scaling(counts, backend.value, runs_root, scene, iterations, steps, quiet)
     runs.write_csv(frame, out)
     typer.echo(frame[list(PBF_COLUMNS)].to_string(index=False))
