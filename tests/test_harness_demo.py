@@ -54,6 +54,14 @@ def test_smoke_demo_writes_every_study_and_the_report(tmp_path):
     assert (compare.groupby("mode")["cloud_cover"].max() > 0.1).all(), compare.groupby("mode")["cloud_cover"].max()
     adaptive = compare[compare["mode"] == "adaptive"]
     assert adaptive["n_particles"].max() > adaptive["n_particles"].iloc[0]
+    # so do the sweep's particle runs: both modes have measured errors, so the Pareto plot holds points of
+    # both and the verdict compares them (not "not enough stable runs")
+    sweep = pd.read_csv(out / "data" / "sweep.csv")
+    measured = sweep[sweep["stable"].astype(bool) & sweep["error_self"].notna()]
+    assert (measured["parameter"] == "spacing").sum() >= 2, sweep[["parameter", "value", "stable", "error_self"]]
+    assert (measured["parameter"] == "adaptive_spacing").sum() >= 1, sweep[["parameter", "value", "error_self"]]
+    verdict = json.loads((out / "data" / "sweep_verdict.json").read_text())["verdict"]
+    assert not verdict.startswith("not enough"), verdict
     for render in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",
                    "figure3_shape_energy", "clouds_strip"):
         renders = out / "data" / "renders"

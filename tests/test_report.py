@@ -221,6 +221,28 @@ def test_table1_speedups_are_computed_from_the_rows(full_report):
     assert f"{(1087.36 + 112.35 + 19.24) / 35.0:.4g}" in table1
 
 
+@pytest.mark.parametrize("lock,expected,absent", [
+    ({"file": "constraints.txt", "matches": False,
+      "differs": {"pandas": {"locked": "2.3.3", "installed": "3.0.6"}, "asv": {"locked": "0.6.6", "installed": None}}},
+     ["<td>pandas</td>", "<td>2.3.3</td>", "<td>3.0.6</td>", "1 installed package(s) differ from the lock file"],
+     ["Every installed package"]),
+    ({"file": "constraints.txt", "matches": True, "differs": {}},
+     ["Every installed package is at the version of the lock file constraints.txt"], ["differ from the lock", "<td>pandas</td>"]),
+    (None, ["were not checked against constraints.txt"], ["Every installed package"]),
+])
+def test_environment_section_shows_the_lock_check(tmp_path, lock, expected, absent):
+    out = tmp_path / "study"
+    (out / "data").mkdir(parents=True)
+    (out / "data" / "environment.json").write_text(json.dumps({
+        "device": DEVICE, "backend": "cpu", "commit": COMMIT, "versions": {"numpy": "2.4.6"}, "lock": lock}))
+    env = _sections(build_report(out).read_text())["environment"]
+    for text in expected:
+        assert text in env, text
+    for text in absent:
+        assert text not in env, text
+    assert ("Locked but not installed here: asv." in env) == bool(lock and lock["differs"])
+
+
 def test_report_with_missing_inputs_says_not_run_with_the_command(tmp_path):
     out = tmp_path / "empty"
     (out / "data").mkdir(parents=True)

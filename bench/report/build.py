@@ -252,11 +252,41 @@ def _environment(inp: Inputs, sec: Section, env: dict | None) -> None:
     if versions:
         sec.add("table", _table(pd.DataFrame({"package": list(versions), "version": [str(v) for v in versions.values()]})),
                 caption="package versions")
+    _lock_check(sec, env)
     scale = env.get("scale")
     if scale and scale != "gpu":
         sec.add("note", f"Scale '{scale}': a CPU run at scaled-down particle counts and step counts. Timings "
                         "show the harness works and how costs divide; they are not comparable with the paper's GPU "
                         "numbers (see reports/gpu for the GPU reference results).", level="warn")
+
+
+def _lock_check(sec: Section, env: dict) -> None:
+    """environment.json's ``lock`` (bench.environment.lock_check): installed versions against the lock file.
+    Packages at another version are listed with both versions; locked packages not installed (extras the
+    study did not need) are named on one line."""
+    if "lock" not in env:
+        return
+    lock = env["lock"]
+    if not isinstance(lock, dict):
+        sec.add("note", "No lock file where this ran (an installed package, not a checkout): the versions above "
+                        "were not checked against constraints.txt.", level="warn")
+        return
+    name = lock.get("file", "constraints.txt")
+    differs = lock.get("differs") or {}
+    other = {k: v for k, v in sorted(differs.items()) if v.get("installed")}
+    absent = sorted(k for k, v in differs.items() if not v.get("installed"))
+    if not other:
+        sec.add("note", f"Every installed package is at the version of the lock file {name}.", level="ok")
+    else:
+        sec.add("table", _table(pd.DataFrame({"package": list(other),
+                                              "locked": [str(v.get("locked")) for v in other.values()],
+                                              "installed": [str(v.get("installed")) for v in other.values()]})),
+                caption=f"packages at another version than the lock file {name}")
+        sec.add("note", f"{len(other)} installed package(s) differ from the lock file {name}: these results were "
+                        f"not produced with the locked versions (scripts/setup.sh installs them: "
+                        f"pip install -c {name} -e \".[all]\").", level="warn")
+    if absent:
+        sec.add("text", f"Locked but not installed here: {', '.join(absent)}.")
 
 
 def _summary_row(rows: list, question: str, answer: str, section: str, missing_key: str | None = None,
