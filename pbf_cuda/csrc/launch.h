@@ -111,12 +111,31 @@ inline auto exec() { return thrust::cuda::par_nosync(temp_allocator()); }
 inline auto exec() { return thrust::device; }
 #endif
 
+#ifdef PBF_BACKEND_CUDA
+template <class F>
+__global__ void for_each_kernel(uint32_t n, F f) {
+    uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i < n) f(i);
+}
+
+// One thread per item in blocks of 128. Thrust's for_each gives each thread two items in blocks of 256: at
+// 100k particles that is ~200 blocks for 132 SMs (17% of the warps an SM can hold, measured with Nsight
+// Compute on an H100), and each thread walks two neighbourhoods one after the other. The neighbour loops are
+// latency-bound, so a small scene ran at a third of the per-particle speed of a large one.
+template <class F>
+void parallel_for(std::size_t n, const F& f) {
+    if (n == 0) return;
+    const unsigned block = 128;
+    for_each_kernel<<<unsigned((n + block - 1) / block), block>>>(uint32_t(n), f);
+}
+#else
 template <class F>
 void parallel_for(std::size_t n, const F& f) {
     if (n == 0) return;
     thrust::for_each(exec(), thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n)),
                      f);
 }
+#endif
 
 // op-reduction of f(i) over i in [0, n), starting from init (the host waits for the value).
 template <class T, class F, class Op>
