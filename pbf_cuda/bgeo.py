@@ -53,11 +53,13 @@ class Bgeo:
 
     ``points``: ``P`` (N, 3) float32, ``Pw`` (N,) the homogeneous coordinate, and each point attribute
     by name: float32 (N,) or (N, size), int32 likewise.  ``detail``: each detail attribute as a Python
-    value (float, int, str; a tuple when its size is above 1).  ``types``: the format's type name of
-    every attribute (``"float"``, ``"int"``, ``"vector"``, ``"index"``), point and detail together."""
+    value (float, int, str; a tuple when its size is above 1).  ``point_types`` and ``detail_types``: the
+    format's type name of each attribute (``"float"``, ``"int"``, ``"vector"``, ``"index"``); a point and a
+    detail attribute may share a name."""
     points: dict = field(default_factory=dict)
     detail: dict = field(default_factory=dict)
-    types: dict = field(default_factory=dict)
+    point_types: dict = field(default_factory=dict)
+    detail_types: dict = field(default_factory=dict)
 
     @property
     def n_points(self) -> int:
@@ -244,7 +246,7 @@ def decode_bgeo(data: bytes, source: str = "<bytes>") -> Bgeo:
     for i, (name, kind, size, _) in enumerate(point_dict):
         col = records[f"a{i}"].astype("=i4" if kind in (INT, INDEX) else "=f4")
         out.points[name] = col[:, 0].copy() if size == 1 else col.copy()
-        out.types[name] = _TYPE_NAMES[kind]
+        out.point_types[name] = _TYPE_NAMES[kind]
     detail_dict = _dictionary(cur, n_detail, "detail")
     for name, kind, size, strings in detail_dict:
         raw = cur.take(4 * size)
@@ -254,7 +256,7 @@ def decode_bgeo(data: bytes, source: str = "<bytes>") -> Bgeo:
         else:
             values = struct.unpack(f">{size}{'i' if kind == INT else 'f'}", raw)
         out.detail[name] = values[0] if size == 1 else values
-        out.types[name] = _TYPE_NAMES[kind]
+        out.detail_types[name] = _TYPE_NAMES[kind]
     tail = data[cur.pos:]
     if tail[:2] != b"\x00\xff":
         raise ValueError(f"{source}: {len(tail)} unexpected bytes after the detail attributes")

@@ -67,12 +67,12 @@ def test_state_round_trip_is_bitwise(tmp_path):
     assert back.n_points == 500
     assert back.points["P"].tobytes() == state["position"].tobytes()
     assert (back.points["Pw"] == 1.0).all()
-    assert back.points["v"].tobytes() == state["velocity"].tobytes() and back.types["v"] == "vector"
+    assert back.points["v"].tobytes() == state["velocity"].tobytes() and back.point_types["v"] == "vector"
     for name in ("temperature", "vapor", "cloud", "mass", "kernel_radius"):
-        assert back.points[name].dtype == np.float32 and back.types[name] == "float"
+        assert back.points[name].dtype == np.float32 and back.point_types[name] == "float"
         assert back.points[name].tobytes() == state[name].tobytes(), name
     for name in ("level", "id"):
-        assert back.types[name] == "int"
+        assert back.point_types[name] == "int"
         np.testing.assert_array_equal(back.points[name].astype(np.int64), state[name].astype(np.int64))
     assert back.detail["time"] == 80.0 and back.detail["step"] == 40 and back.detail["scene"] == "growing"
     assert back.detail["P_unit"] == "m" and back.detail["v_unit"] == "m/s"
@@ -92,7 +92,7 @@ def test_gzip_and_empty_cloud(tmp_path):
     back = read_bgeo(path)
     assert back.points["P"].tobytes() == pos.tobytes()
     assert back.detail == {"step": 3, "origin": (0.5, -1.0, 2.0), "shape": (4, 5, 6)}
-    assert back.types["origin"] == "float" and back.types["shape"] == "int"
+    assert back.detail_types["origin"] == "float" and back.detail_types["shape"] == "int"
     empty = decode_bgeo(encode_bgeo(np.zeros((0, 3), np.float32), {"level": np.zeros(0, np.int32)}))
     assert empty.n_points == 0 and empty.points["level"].shape == (0,)
 
@@ -174,11 +174,13 @@ def test_round_trip_property(cloud):
         got = back.points[name]
         assert got.shape == arr.shape
         if arr.dtype.kind == "f":
-            assert back.types[name] == "float" and got.tobytes() == arr.tobytes()
+            assert back.point_types[name] == "float" and got.tobytes() == arr.tobytes()
         else:
-            assert back.types[name] == "int" and got.tobytes() == arr.astype(np.int32).tobytes()
+            assert back.point_types[name] == "int" and got.tobytes() == arr.astype(np.int32).tobytes()
     assert back.detail.keys() == detail.keys()
     for key, value in detail.items():
+        assert back.detail_types[key] == ("index" if isinstance(value, str) else
+                                          "float" if isinstance(value, float) else "int")
         got = back.detail[key]
         if isinstance(value, float):
             assert np.float32(got).tobytes() == np.float32(value).tobytes()

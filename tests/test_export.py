@@ -231,7 +231,7 @@ def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
     for name, frame in zip(names, frames):
         back = read_bgeo(folder / name)
         assert back.points["P"].tobytes() == frame["position"].tobytes()
-        assert back.points["v"].tobytes() == frame["velocity"].tobytes() and back.types["v"] == "vector"
+        assert back.points["v"].tobytes() == frame["velocity"].tobytes() and back.point_types["v"] == "vector"
         for field in ("temperature", "vapor", "cloud", "mass", "kernel_radius"):
             assert back.points[field].tobytes() == frame[field].tobytes()
         np.testing.assert_array_equal(back.points["id"], frame["id"].astype(np.int64))
