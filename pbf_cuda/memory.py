@@ -25,6 +25,7 @@ BYTES_PER_CELL = 16              # fluid and boundary cell start/end (uint32 eac
 HOST_BYTES_PER_PARTICLE = 160    # numpy arrays while the initial state is built (float64 lattices)
 HOST_BYTES_PER_BOUNDARY = 96
 BYTES_PER_SLOT_VELOCITY_PROJECTION = 20   # conjugate-gradient r, p, q, diag and the warm-start mu (floats)
+NEIGHBOR_LIST_HEADROOM = 1.25    # the index array grows to 1.25x the entries it needs (neighbor_list.h)
 MAX_CELLS = 2**32 - 1            # the solver's cell index is a uint32
 MAX_SLOTS = 2**32 - 2            # particle ids are uint32
 SAFETY = 0.8                     # use at most this fraction of what is available
@@ -83,6 +84,18 @@ def particle_slots(scene: Scene, n: int) -> int:
     return n
 
 
+def neighbor_list_bytes_per_slot(scene: Scene) -> int:
+    """Bytes per particle slot of the per-step neighbour lists (pbf.neighbor_list): a row offset and the
+    candidates within (1 + skin) kernel radii of a full lattice neighbourhood, uint32 each, with the index
+    array's headroom; adaptive scenes twice that (a coarse particle beside finer ones has more candidates)."""
+    if not scene.pbf.neighbor_list:
+        return 0
+    candidates = 4.0 / 3.0 * math.pi * (1.1 * scene.particles.kernel_ratio) ** 3
+    if scene.adaptive.enabled:
+        candidates *= 2.0
+    return 4 + int(math.ceil(4 * NEIGHBOR_LIST_HEADROOM * candidates))
+
+
 def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
                     boundary: int | None = None) -> MemoryEstimate:
     """Bytes a Simulation of `scene` needs on `backend` ('cpu' or 'cuda'); `fluid`/`boundary` override
@@ -94,6 +107,7 @@ def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None
     per_slot = BYTES_PER_SLOT.get(backend, BYTES_PER_SLOT["cpu"])
     if scene.pbf.projection == "velocity":
         per_slot += BYTES_PER_SLOT_VELOCITY_PROJECTION
+    per_slot += neighbor_list_bytes_per_slot(scene)
     device = slots * per_slot + nb * BYTES_PER_BOUNDARY + cells * BYTES_PER_CELL
     host = n * HOST_BYTES_PER_PARTICLE + nb * HOST_BYTES_PER_BOUNDARY
     return MemoryEstimate(n, slots, nb, cells, device, host)
@@ -152,11 +166,11 @@ def check_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
     if host is not None and host_need > SAFETY * host:
         raise SceneError(f"{scene.name}: {est.describe()} need about {_gib(host_need)} of host memory on the "
                          f"{backend} backend, {_gib(host)} available; lower the particle count (particles.spacing, "
-                         f"--particles) or adaptive.capacity")
+                         f"--particles) or adaptive.capacity, or set pbf.neighbor_list = false")
     if backend == "cuda":
         device = available_memory("cuda")
         if device is not None and est.device_bytes > SAFETY * device:
             raise SceneError(f"{scene.name}: {est.describe()} need about {_gib(est.device_bytes)} of GPU memory, "
                              f"{_gib(device)} free; lower the particle count (particles.spacing, --particles) "
-                             f"or adaptive.capacity")
+                             f"or adaptive.capacity, or set pbf.neighbor_list = false")
     return est

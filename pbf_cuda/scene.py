@@ -137,6 +137,10 @@ class PBF:
     shift_keeps_anomaly: bool = _spec(False, doc="velocity projection with an atmosphere: the density constraint's "
                                       "vertical shift of a particle moves its temperature along the environment's lapse "
                                       "rate, not the dry adiabat")
+    neighbor_list: bool = _spec(True, doc="keep each particle's neighbour candidates in a list built once per step "
+                                          "(about 200 bytes per particle) instead of searching the cells in every "
+                                          "neighbour pass: the same sums, 2-3x fewer particles looked at; off for "
+                                          "the largest sizes, where the lists would not fit in memory")
     unilateral: bool = _spec(True, doc="clamp C_i = max(rho_i/rho0 - 1, 0) (free surfaces only: a closed domain "
                                        "needs the bilateral constraint, or heated air leaves a rarefied layer)")
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")

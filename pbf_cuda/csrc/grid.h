@@ -115,6 +115,10 @@ struct CellRanges {
     const float* sub_radius = nullptr;    // per sub-cell: largest kernel radius of its particles (m), 0 if empty
     const float* cell_radius = nullptr;   // per cell: largest kernel radius of its particles (m), 0 if empty
     const uint32_t* key = nullptr;        // per particle: its nested key as sorted
+    // This step's neighbour lists (neighbor_list.h), when the solver keeps them: particle i's candidates are
+    // nbr_index[nbr_offset[i] .. nbr_offset[i + 1]), in the order the cell search visits them.
+    const uint32_t* nbr_offset = nullptr;
+    const uint32_t* nbr_index = nullptr;
 };
 
 // ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------
@@ -156,9 +160,10 @@ PBF_INLINE uint32_t nested_key(const GridGeometry& g, Vec3 p) { return cell_key(
 //     in j's cell): one contiguous loop, as the uniform search does.
 // Every test reads the sub-cells and cells as sorted (i's own from its sort key), never positions that moved since,
 // and is symmetric in i and j: j is visited from i exactly when i is from j, so pair forces stay equal and opposite.
+// skin (m) widens every radius test by that much (the neighbour lists' candidates; 0 for the sums themselves).
 template <class F>
 PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q,
-                                            F&& f) {
+                                            F&& f, float skin = 0.0f) {
     const uint32_t key = set.key[i];
     const uint32_t cell_i = key / kSubCells;
     uint32_t c[3];
@@ -194,7 +199,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
                 if (b == en) continue;
                 float hc = set.cell_radius[cell];
                 if (!(fine_i && hc <= sub_side)) {   // cell mode
-                    float rc = fmaxf(hc_i, hc);
+                    float rc = fmaxf(hc_i, hc) + skin;
                     float rc2 = rc * rc;
                     for (uint32_t j = b; j < en; ++j) {
                         Float4 pj = set.pos[j];
@@ -208,7 +213,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
                     uint32_t sc = cell * kSubCells + s;
                     uint32_t sb = set.sub_start[sc], se = set.sub_end[sc];
                     if (sb == se) continue;
-                    float hs = fmaxf(hs_i, set.sub_radius[sc]);
+                    float hs = fmaxf(hs_i, set.sub_radius[sc]) + skin;
                     float rs2 = hs * hs;
                     float es = gap2(0, dx, int(s & 1u)) + gap2(1, dy, int((s >> 1) & 1u)) + gap2(2, dz, int(s >> 2));
                     if (es >= rs2) continue;

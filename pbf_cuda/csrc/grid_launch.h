@@ -123,5 +123,21 @@ inline void build_neighbor_grid(SolverData& d) {
                                                        raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
 }
 
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their running sum (the row
+// offsets; the host reads the total to size the index array, which only grows), then the candidates.
+template <class Policy>
+void build_neighbor_lists(SolverData& d) {
+    d.lists_ready = false;
+    if (!d.p.neighbor_list || d.n == 0) return;
+    CellRanges fl = d.fluid_ranges(d.pred);
+    const float skin = kNeighborSkin * d.p.h0;
+    parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.uint_tmp)});
+    thrust::inclusive_scan(exec(), d.uint_tmp.begin(), d.uint_tmp.begin() + d.n, d.nbr_offset.begin() + 1);
+    const std::size_t total = uint32_t(d.nbr_offset[d.n]);
+    if (total > d.nbr_index.size()) d.nbr_index.resize(total + total / 4);
+    parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
+    d.lists_ready = true;
+}
+
 }  // namespace PBF_BACKEND_NS
 }  // namespace pbf

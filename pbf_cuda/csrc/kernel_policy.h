@@ -6,6 +6,7 @@
 //   area_scaled(x, h, h0)         x (h / h0)^2: a per-level quantity that scales with h^2 (smoothing's beta)
 //   tensile_ratio, tensile_scale  the s_corr term at the pair's own radii (PositionCorrection)
 //   for_each_neighbor             the 27-cell search at h0, or the nested sub-cell search of grid.h
+//   for_each_candidate            the same search with every radius widened by a skin (neighbor_list.h)
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -25,6 +26,11 @@ struct UniformPolicy {
     template <class F>
     static PBF_HD void for_each_neighbor(const GridGeometry& g, const CellRanges& set, uint32_t, Vec3 q, float h0, F&& f) {
         pbf::for_each_neighbor(g, set, q, h0, f);
+    }
+    template <class F>
+    static PBF_HD void for_each_candidate(const GridGeometry& g, const CellRanges& set, uint32_t, Vec3 q, float h0,
+                                          float skin, F&& f) {
+        pbf::for_each_neighbor(g, set, q, h0 + skin, f);
     }
 };
 
@@ -52,13 +58,34 @@ struct AdaptivePolicy {
                                          F&& f) {
         for_each_neighbor_nested(g, set, i, q, f);
     }
+    template <class F>
+    static PBF_HD void for_each_candidate(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q, float,
+                                          float skin, F&& f) {
+        for_each_neighbor_nested(g, set, i, q, f, skin);
+    }
 };
 
 // f(j, r, r2, m_j, h_j) for the fluid neighbours j of particle i at q (i itself included, r2 = 0): the policy's
-// search, with each neighbour's mass and kernel radius.
+// search, with each neighbour's mass and kernel radius. With this step's neighbour lists (neighbor_list.h) the
+// candidates come from i's list, in the order the search found them, and f is called where |r| is below the
+// pair's support max(h_i, h_j) (h0 in uniform runs: the search's own test); the search's wider cell-level tests
+// in adaptive runs only added pairs whose kernels are exactly zero.
 template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
+    if (fluid.nbr_offset) {
+        const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
+        for (uint32_t k = fluid.nbr_offset[i], e = fluid.nbr_offset[i + 1]; k < e; ++k) {
+            uint32_t j = fluid.nbr_index[k];
+            Float4 pj = fluid.pos[j];
+            Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+            float r2 = dot(r, r);
+            float hj = Policy::radius(radii, h0, pj.w);
+            float hm = fmaxf(hi, hj);
+            if (r2 < hm * hm) f(j, r, r2, pj.w, hj);
+        }
+        return;
+    }
     Policy::for_each_neighbor(g, fluid, i, q, h0, [&](uint32_t j, Vec3 r, float r2) {
         float mj = fluid.pos[j].w;
         f(j, r, r2, mj, Policy::radius(radii, h0, mj));

@@ -44,6 +44,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \
     S(float, scorr_dq, "pbf.scorr_dq", 0.2f)               /* dq / h */                                            \
     S(bool, velocity_projection, "", false)                /* pbf.projection == "velocity" */                      \
+    S(bool, neighbor_list, "pbf.neighbor_list", true)      /* per-step neighbour lists (neighbor_list.h) */        \
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \
     S(float, divergence_tolerance, "pbf.divergence_tolerance", 0.0f)                                               \
     S(bool, gradient_correction, "pbf.gradient_correction", false)                                                 \

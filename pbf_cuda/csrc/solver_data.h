@@ -8,6 +8,7 @@
 #include "adaptivity.h"
 #include "grid.h"
 #include "kernels.h"
+#include "neighbor_list.h"
 #include "params.h"
 #include "pbf_constraints.h"
 #include "solver_api.h"
@@ -34,6 +35,8 @@ struct SolverData {
     dvec<uint32_t> id, uint_tmp, keys, perm, cell_start, cell_end;
     dvec<uint32_t> sub_start, sub_end;    // adaptive runs: nested sub-cell ranges (grid.h)
     dvec<float> sub_radius, cell_radius;  // adaptive runs: largest kernel radius per sub-cell and per cell
+    dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
+    bool lists_ready = false;             // the lists belong to this step's sorted particles
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
@@ -52,12 +55,18 @@ struct SolverData {
     PhaseTotals totals;
     StepStats last_stats;
 
-    // The fluid particles at `positions` (pos or pred) with this step's cell ranges, as kernels see them.
+    // The fluid particles at `positions` (pos or pred) with this step's cell ranges, as kernels see them, and the
+    // step's neighbour lists where they are kept and still belong to the sorted particles (the kernels' sums read
+    // them; merging and splitting, which renumber particles, get none).
     CellRanges fluid_ranges(const dvec<Float4>& positions) const {
-        if (p.adaptive)
-            return CellRanges{raw(positions), raw(cell_start), raw(cell_end), raw(sub_start), raw(sub_end),
-                              raw(sub_radius), raw(cell_radius), raw(keys)};
-        return CellRanges{raw(positions), raw(cell_start), raw(cell_end)};
+        CellRanges r = p.adaptive ? CellRanges{raw(positions), raw(cell_start), raw(cell_end), raw(sub_start),
+                                               raw(sub_end), raw(sub_radius), raw(cell_radius), raw(keys)}
+                                  : CellRanges{raw(positions), raw(cell_start), raw(cell_end)};
+        if (lists_ready) {
+            r.nbr_offset = raw(nbr_offset);
+            r.nbr_index = raw(nbr_index);
+        }
+        return r;
     }
     // The boundary particles (start == nullptr: no walls).
     CellRanges boundary_ranges() const {
@@ -73,6 +82,7 @@ struct SolverData {
         lambda.resize(cap); density.resize(cap);
         keys.resize(cap); perm.resize(cap);
         float_tmp.resize(cap);
+        if (p.neighbor_list) nbr_offset.assign(cap + 1, 0u);   // nbr_offset[0] stays 0
         if (p.vorticity > 0.0f) omega.resize(cap);
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);

@@ -55,6 +55,7 @@ public:
         d.clock.begin(kPhaseNeighbors);
         predict_positions(d);                        // x* = x + dt (v + dt g)
         build_neighbor_grid(d);                      // sort by the cell of x*, cell ranges
+        build_neighbor_lists<Policy>(d);             // each particle's candidates, once per step
         d.clock.end(kPhaseNeighbors);
         d.clock.begin(kPhaseSolver);
         const CellRanges walls = d.boundary_ranges();
@@ -78,6 +79,7 @@ public:
 
         d.step += 1;
         d.time += d.p.dt;
+        d.lists_ready = false;                       // the lists stay with this step's particles
         if (d.p.adaptive) adapt(d);                  // merging, splitting, compaction (section 5.2)
     }
 
