@@ -50,7 +50,8 @@ RunsRootOpt = Annotated[Optional[Path], typer.Option(
     "--runs-root", help="run cache folder (default: $CLOUDPBF_RUNS, else runs/ of the checkout, else the user "
                         "cache folder, e.g. ~/.cache/cloudpbf/runs)")]
 ScaleOpt = Annotated[ScaleName, typer.Option(
-    "--scale", help="smoke (CI, minutes), cpu (~50k particles), gpu (the paper's counts); auto: gpu if CUDA")]
+    "--scale", help="smoke (a small box, minutes on a CPU), cpu (~50k particles, hours on 2 cores), gpu (the "
+                    "paper's counts); auto: gpu if CUDA, else smoke")]
 BackendOpt = Annotated[Backend, typer.Option("--backend", help="particle solver backend")]
 WorkersOpt = Annotated[Optional[int], typer.Option(
     "--workers", min=1, max=4096, help="dask workers of the local cluster (default: CPU cores; 1 per GPU on GPU)")]

@@ -15,7 +15,7 @@ from bench.pareto import pareto_mask
 from bench.studies import stress, sweep
 from bench.studies.compare import scene_pair
 from bench.studies.context import INLINE, StudyContext, StudyError
-from bench.studies.scales import SCALES, fine_particles, scale_scene, scale_slab
+from bench.studies.scales import SCALES, fine_particles, resolve_scale, scale_scene, scale_slab
 from pbf_cuda.scene import load_scene
 from test_harness_toy import toy_solver  # noqa: F401  (fixture)
 
@@ -53,6 +53,26 @@ def test_every_scale_gives_valid_scenes():
         for n in scale.sweep_particles:
             scale_scene(load_scene("growing_adaptive"), n)
         scale_slab(load_scene("smoothing_slab"), scale.slab_particles)
+
+
+@pytest.mark.parametrize("backends, expected", [(["cpu"], "smoke"), (["cpu", "cuda"], "gpu")])
+def test_auto_scale_is_the_minutes_long_demo_without_a_gpu(monkeypatch, backends, expected):
+    from pbf_cuda import simulation
+    monkeypatch.setattr(simulation, "available_backends", lambda: backends)
+    assert resolve_scale("auto").name == expected
+    assert resolve_scale("cpu").name == "cpu"                  # the ~50k-particle scale by name only
+    with pytest.raises(ValueError, match="allowed auto, smoke, cpu, gpu"):
+        resolve_scale("huge")
+
+
+def test_figure1_slab_runs_all_its_steps_at_every_scale(tmp_path):
+    from bench.studies.renders import slab_specs
+    steps = load_scene("smoothing_slab").time.steps
+    for scale in SCALES.values():       # the smoke scale's half would end before its clouds form
+        ctx = StudyContext(out=tmp_path / "out", scale=scale, runs_root=tmp_path / "runs", scheduler=INLINE)
+        unsmoothed, smoothed = slab_specs(ctx)
+        assert unsmoothed.scene.time.steps == smoothed.scene.time.steps == steps
+        assert unsmoothed.scene.smoothing.kappa == 0.0 < smoothed.scene.smoothing.kappa
 
 
 def test_smoke_compare_and_sweep_run_in_the_small_box(tmp_path):

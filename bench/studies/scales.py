@@ -1,8 +1,9 @@
 """Study scales: how big every study's runs are on a CI box, a workstation CPU, or a GPU.
 
-``smoke`` (CI, 2 cores, the whole demo in a few minutes), ``cpu`` (~50k particles, a laptop or
-workstation), ``gpu`` (the paper's particle counts: the scene files' own spacing).  ``auto`` picks
-``gpu`` when the solver sees a CUDA device, else ``cpu``.
+``smoke`` (CI and any machine without a GPU: the whole demo in a few minutes on 2 cores, clouds forming
+in a small box), ``cpu`` (~50k particles in the scenes' 3.2 km domain, a workstation: hours on 2 cores),
+``gpu`` (the paper's particle counts: the scene files' own spacing).  ``auto`` picks ``gpu`` when the
+solver sees a CUDA device, else ``smoke`` (AUTO_WITHOUT_GPU); ``cpu`` is chosen by name only.
 
 Scaling a cloud scene to fewer particles coarsens the lattice spacing by a factor f; the ground
 heating layer (eq. 5) is thickened by f and its rate divided by f, so the heat flux S_e * depth
@@ -19,6 +20,9 @@ from dataclasses import dataclass
 from pbf_cuda.scene import Scene
 
 SCALE_NAMES = ("auto", "smoke", "cpu", "gpu")
+AUTO_WITHOUT_GPU = "smoke"
+"""What ``auto`` picks where the solver sees no CUDA device: the scale whose demo finishes in minutes on a CPU
+and still forms clouds (the ``cpu`` scale's demo takes hours on 2 cores)."""
 
 
 @dataclass(frozen=True)
@@ -76,12 +80,13 @@ SCALES = _ScaleTable()
 
 
 def resolve_scale(name: str) -> Scale:
-    """The Scale for 'smoke' | 'cpu' | 'gpu' | 'auto' (gpu when the solver sees a CUDA device)."""
+    """The Scale for 'smoke' | 'cpu' | 'gpu' | 'auto' (gpu when the solver sees a CUDA device, else
+    AUTO_WITHOUT_GPU)."""
     if name not in SCALE_NAMES:
         raise ValueError(f"scale = {name!r}: allowed {', '.join(SCALE_NAMES)}")
     if name == "auto":
         from pbf_cuda.simulation import available_backends
-        name = "gpu" if "cuda" in available_backends() else "cpu"
+        name = "gpu" if "cuda" in available_backends() else AUTO_WITHOUT_GPU
     return SCALES[name]
 
 
