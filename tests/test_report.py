@@ -421,6 +421,25 @@ def test_table1_total_against_paper_comes_before_the_phase_columns(full_report):
     assert heads.index("pbf ms") > heads.index("adaptive speedup")
 
 
+def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):
+    sections = _sections(full_report[1])
+    sweep = re.findall(r"<th>([^<]*)</th>", sections["sweep"])
+    stress = re.findall(r"<th>([^<]*)</th>", sections["stress"])
+    for raw in ("wall_s", "error_self", "error_other", "max_speed", "density_error_mean", "density_error_max",
+                "constant_gravity", "first_cloud_s"):
+        assert raw not in sweep + stress, raw
+    assert {"wall time (s)", "error vs own finest run", "error vs other method's finest run",
+            "value (spacings in m)"} <= set(sweep)
+    assert sweep.count("wall time (s)") == 2                     # the Pareto fronts and all runs
+    assert {"value (dt in s, heating in K/s)", "max speed (m/s)", "density error, last step",
+            "density error, worst step", "dt (s)", "heating S_e (K/s)", "unstable particle ids",
+            "g_c (m/s²)", "first cloud (s)"} <= set(stress)
+    assert {"parameter", "stable", "reason"} <= set(stress)     # names that read as they are stay
+    from bench.report.build import _table
+    html = _table(pd.DataFrame({"wall_s": [1.5], "other": [2]}), labels={"wall_s": "wall time (s)"})
+    assert re.findall(r"<th>([^<]*)</th>", html) == ["wall time (s)", "other"] and "<td>1.5</td>" in html
+
+
 def test_every_figure_opens_full_size(full_report):
     page = full_report[1]
     figures = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)

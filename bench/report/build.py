@@ -188,7 +188,10 @@ def shorten(text: str, limit: int = MAX_CELL) -> str:
     return text[:limit - 1].rstrip() + "…"
 
 
-def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) -> str:
+def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False,
+           labels: dict[str, str] | None = None) -> str:
+    """HTML of `df` (HIDDEN_COLUMNS dropped, floats in `float_format`, long text cut); `labels` maps a CSV
+    column name to its header (readable, with units); other columns keep their names."""
     df = df.drop(columns=[c for c in HIDDEN_COLUMNS if c in df.columns])
 
     def fmt(v):
@@ -202,6 +205,8 @@ def _table(df: pd.DataFrame, float_format: str = "{:.4g}", index: bool = False) 
     shown = df.copy()
     for col in shown.columns:
         shown[col] = shown[col].map(fmt)
+    if labels:
+        shown = shown.rename(columns=labels)
     return shown.to_html(index=index, escape=True, border=0, classes="data", na_rep="–")
 
 
@@ -772,6 +777,18 @@ def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 
 SWEEP_HIDDEN = ("device", "commit", "run_dir")
+SWEEP_LABELS = {   # sweep.csv column -> table header (bench.studies.sweep writes the columns)
+    "value": "value (spacings in m)", "wall_s": "wall time (s)",
+    "error_self": "error vs own finest run", "error_other": "error vs other method's finest run",
+    "error_cover_self": "cover error vs own finest", "error_profile_self": "profile error vs own finest",
+    "error_cover_other": "cover error vs other's finest", "error_profile_other": "profile error vs other's finest",
+    "particles": "particles (max)", "initial_particles": "particles (initial)", "cells": "grid cells",
+    "spacing_m": "spacing (m)", "iterations": "PBF iterations", "resolution_m": "resolution (m)",
+    "cloud_base_mean": "cloud base (m)", "cloud_top_mean": "cloud top (m)", "cover_mean": "cloud cover (fraction)",
+    "lwp_mean": "LWP (kg/m²)", "split_threshold": "split threshold α", "reference": "reference run",
+    "pareto": "on Pareto front"}
+"""Errors are relative L2 differences of the cover series and the cloud-fraction profile (dimensionless);
+cover, LWP, base and top are time means over the run's cloudy snapshots (cover > 1%)."""
 
 
 def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
@@ -792,8 +809,9 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
     cols = [c for c in ("method", "mode", "parameter", "value", "particles", "cells", "wall_s", "error_self",
                         "error_other") if c in df.columns]
     if fronts:
-        sec.add("table", _table(pd.concat(fronts)[cols]), caption=(
-            "runs on the Pareto front of each method / mode (error_self; the reference runs excluded)"))
+        sec.add("table", _table(pd.concat(fronts)[cols], labels=SWEEP_LABELS), caption=(
+            "runs on the Pareto front of each method / mode (wall time against the error vs the own finest run; "
+            "the reference runs excluded)"))
     verdict = _study_verdict(inp) or _verdict(measured)
     if verdict:
         sec.add("text", verdict)
@@ -809,7 +827,9 @@ def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
             sec.add("note", f"{len(unstable)} sweep run(s) went unstable and have no wall time or error: "
                     + "; ".join(f"{r.method} {r.parameter} = {r.value}: {getattr(r, 'reason', '')}"
                                 for r in unstable.itertuples()), level="warn")
-    sec.add("table", _table(df.drop(columns=[c for c in SWEEP_HIDDEN if c in df.columns])), caption="all runs")
+    sec.add("table", _table(df.drop(columns=[c for c in SWEEP_HIDDEN if c in df.columns]), labels=SWEEP_LABELS),
+            caption="all runs (errors: relative L2 of the cover series and the cloud-fraction profile; cloud cover, "
+                    "LWP, base and top: time means over the run's cloudy snapshots)")
     sec.provenance = _provenance(df, env=env)
 
 
@@ -878,6 +898,21 @@ def _verdict(df: pd.DataFrame) -> str:
             f"{ratio:.2f}x faster.")
 
 
+STRESS_LABELS = {   # stress.csv column -> table header (bench.studies.stress writes the columns)
+    "value": "value (dt in s, heating in K/s)", "step": "last step", "particles": "unstable particle ids",
+    "max_speed": "max speed (m/s)", "density_error_mean": "density error, last step",
+    "density_error_max": "density error, worst step", "energy_jump": "kinetic energy jump (x per step)",
+    "dt": "dt (s)", "iterations": "PBF iterations", "heating_rate": "heating S_e (K/s)",
+    "phase_rate": "phase rate α (1/s)", "alpha_dt": "α dt", "n_particles": "particles (max)",
+    "last_good_step": "last good step"}
+"""Density errors are the per-step mean of |rho/rho0 - 1| (a fraction, eq. 1)."""
+GRAVITY_LABELS = {   # constant_gravity.csv column -> table header
+    "constant_gravity": "g_c (m/s²)", "cloud_gravity": "cloud gravity (m/s²)", "first_cloud_s": "first cloud (s)",
+    "max_cover": "max cloud cover (fraction)", "final_cover": "final cloud cover (fraction)",
+    "vanished_and_returned": "vanished and returned", "density_error_mean": "density error, last step",
+    "max_speed": "max speed (m/s)"}
+
+
 def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
     df, _ = inp.csv("stress")
     if df is None:
@@ -908,9 +943,10 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
     if numeric and not np.isfinite(finite.to_numpy(dtype=float)).all():
         sec.add("note", "a run marked stable has non-finite statistics: check stress.csv", level="error")
     sec.add("text", f"{len(df)} runs, {int(df['stable'].sum())} stable, {len(bad)} unstable.")
-    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns])),
+    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns]),
+                            labels=STRESS_LABELS),
             caption="all cases (an unstable run is stopped at the step the check caught it; its NaN never "
-                    "enters the statistics)")
+                    "enters the statistics; density error: the mean of |rho/rho0 - 1| over the particles)")
     gravity, gravity_path = inp.csv("constant_gravity")
     if gravity is None:
         _missing(sec, "constant_gravity.csv (paper example 2: a constant gravity on the whole domain)",
@@ -919,7 +955,7 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
         cols = [c for c in ("case", "constant_gravity", "cloud_gravity", "particles", "stable", "reason",
                             "first_cloud_s", "max_cover", "final_cover", "vanished_and_returned",
                             "density_error_mean", "max_speed") if c in gravity.columns]
-        sec.add("table", _table(gravity[cols]), caption=(
+        sec.add("table", _table(gravity[cols], labels=GRAVITY_LABELS), caption=(
             f"A constant gravity g_c (m/s^2) added to every particle of the growing scene, beside the shipped "
             f"cycling scene, from {gravity_path.name}: cloud cover (fraction of columns) and the last step's "
             "density error and largest speed (m/s)."))
