@@ -7,10 +7,13 @@
 //
 // The passes keep the search's own test (|r| below the pair's support) on the positions they see, so the lists
 // only change which particles are looked at. Within a step positions move only by the density constraint's
-// corrections (a small fraction of a spacing), far less than the skin, so a pass finds the pairs the cell search
-// would find, in the same order: results agree with the cell search to rounding (bitwise in adaptive runs, whose
-// search reads the sorted cells, never moved positions; tests/test_solver_core.py). pbf.neighbor_list = false
-// keeps the cell search, for sizes whose lists would not fit in memory (pbf_cuda/memory.py counts them).
+// corrections (a small fraction of a spacing), less than half the skin, so a pass finds the pairs the cell search
+// would find, in the same order: results agree with the cell search to rounding (tests/test_solver_core.py).
+// Before each density iteration after the first, and after the last, the step checks that no particle moved half
+// a skin or more since the lists were built, and builds them again from the moved positions where one did (a
+// disordered start, a run going unstable), as Verlet lists are kept: then the passes see exactly the pairs the
+// cell search sees. pbf.neighbor_list = false keeps the cell search, for sizes whose lists
+// would not fit in memory (pbf_cuda/memory.py counts them).
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -48,6 +51,20 @@ struct FillNeighbors {
         Policy::for_each_candidate(grid, fluid, i, xyz(fluid.pos[i]), h0, skin,
                                    [&](uint32_t j, Vec3, float) { index[k++] = j; });
     }
+};
+
+// Squared distance (m^2) particle i moved since the lists were built at `built`.
+struct MovedSince {
+    const Float4* pos;
+    const Float4* built;
+    PBF_HD float operator()(uint32_t i) const {
+        Vec3 d = xyz(pos[i]) - xyz(built[i]);
+        return dot(d, d);
+    }
+};
+
+struct MaxFloat {
+    PBF_HD float operator()(float a, float b) const { return a > b ? a : b; }
 };
 
 }  // namespace pbf
