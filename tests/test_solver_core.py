@@ -255,7 +255,7 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_neighbour_lists_follow_particles_the_density_iterations_move_far(backend):
-    # A disordered start: the first step's density iterations move particles by 0.2 kernel radii, twice the
+    # A disordered start: the first step's density iterations move particles by 0.2 kernel radii, twice half the
     # lists' skin, so the lists are built again between iterations (refresh_neighbor_lists). Still the cell
     # search's pairs: bitwise on the CPU, and, without them, the first step already differed (1e-6 relative).
     runs = {}
@@ -269,7 +269,7 @@ def test_neighbour_lists_follow_particles_the_density_iterations_move_far(backen
         x0 = by_id(sim.state())["position"]
         sim.step(1)
         moved = np.abs(by_id(sim.state())["position"] - x0).max() / scene.kernel_radius
-        assert moved > 0.1                                     # more than the skin: the refresh is exercised
+        assert moved > 0.1                                     # more than half the skin: the refresh runs
         sim.step(9)
         runs[lists] = by_id(sim.state())
     for key in runs[False]:
