@@ -90,7 +90,7 @@ def neighbor_list_bytes_per_slot(scene: Scene) -> int:
     array's headroom; adaptive scenes twice that (a coarse particle beside finer ones has more candidates)."""
     if not scene.pbf.neighbor_list:
         return 0
-    candidates = 4.0 / 3.0 * math.pi * (1.2 * scene.particles.kernel_ratio) ** 3
+    candidates = 4.0 / 3.0 * math.pi * (1.1 * scene.particles.kernel_ratio) ** 3
     if scene.adaptive.enabled:
         candidates *= 2.0
     return 4 + int(math.ceil(4 * NEIGHBOR_LIST_HEADROOM * candidates))

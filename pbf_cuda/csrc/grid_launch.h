@@ -129,6 +129,7 @@ template <class Policy>
 void build_neighbor_lists(SolverData& d) {
     d.lists_ready = false;
     if (!d.p.neighbor_list || d.n == 0) return;
+    d.list_builds += 1;
     thrust::copy(exec(), d.pred.begin(), d.pred.begin() + d.n, d.nbr_built.begin());
     CellRanges fl = d.fluid_ranges(d.pred);
     const float skin = kNeighborSkin * d.p.h0;
@@ -140,14 +141,16 @@ void build_neighbor_lists(SolverData& d) {
     d.lists_ready = true;
 }
 
-// The lists again where a particle moved half a skin or more since they were built (pred after the density
-// iterations): the pairs the cell search finds at the moved positions.
+// Where a particle moved half a skin or more since the lists were built (pred during and after the density
+// iterations): the lists again from the moved positions, once a step; after that the cell search itself.
 template <class Policy>
 void refresh_neighbor_lists(SolverData& d) {
     if (!d.lists_ready) return;
     const float half_skin = 0.5f * kNeighborSkin * d.p.h0;
     float moved2 = reduce_over(d.n, MovedSince{raw(d.pred), raw(d.nbr_built)}, 0.0f, MaxFloat{});
-    if (!(moved2 < half_skin * half_skin)) build_neighbor_lists<Policy>(d);
+    if (moved2 < half_skin * half_skin) return;
+    if (d.list_builds < 2) build_neighbor_lists<Policy>(d);
+    else d.lists_ready = false;
 }
 
 }  // namespace PBF_BACKEND_NS

@@ -10,9 +10,10 @@
 // corrections (a small fraction of a spacing), less than half the skin, so a pass finds the pairs the cell search
 // would find, in the same order: results agree with the cell search to rounding (tests/test_solver_core.py).
 // Before each density iteration after the first, and after the last, the step checks that no particle moved half
-// a skin or more since the lists were built, and builds them again from the moved positions where one did (a
-// disordered start, a run going unstable), as Verlet lists are kept: then the passes see exactly the pairs the
-// cell search sees. pbf.neighbor_list = false keeps the cell search, for sizes whose lists
+// a skin or more since the lists were built. The first time one did in a step, the lists are built again from the
+// moved positions, as Verlet lists are kept; a second time, the step's remaining passes use the cell search itself
+// (building again at every check made the 831k-particle `growing` 47% slower in its convective phase, H100).
+// Either way the passes see exactly the pairs the cell search sees. pbf.neighbor_list = false keeps the cell search, for sizes whose lists
 // would not fit in memory (pbf_cuda/memory.py counts them).
 #pragma once
 #include "common.h"
@@ -22,10 +23,10 @@
 namespace pbf {
 
 // Skin of the lists as a fraction of the level-0 kernel radius h0. In `growing` (65k particles, 300 steps of
-// convection, CPU) the density iterations moved a few particles per step by more than 0.05 h0 and none by 0.1 h0:
-// half of this skin, so the lists are rarely built twice in a step. With a skin of 0.1 h0 they were, in most steps
-// of the larger runs (the 831k-particle `growing` ran 47% slower on an H100).
-constexpr float kNeighborSkin = 0.2f;
+// convection, CPU) the density iterations moved a few particles per step by more than half of it (0.05 h0), none
+// by 0.1 h0. A wider skin costs every pass: with 0.2 h0 the 831k-particle `growing` step took 10.1 ms on an H100
+// against 7.9 ms.
+constexpr float kNeighborSkin = 0.1f;
 
 // count[i] = candidates of particle i.
 template <class Policy>

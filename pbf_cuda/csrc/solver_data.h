@@ -38,6 +38,7 @@ struct SolverData {
     dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
     dvec<Float4> nbr_built;               // the positions the lists were built at
     bool lists_ready = false;             // the lists belong to this step's sorted particles
+    int list_builds = 0;                  // lists built this step (neighbor_list.h: at most two)
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
