@@ -254,10 +254,11 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_neighbour_lists_follow_particles_the_density_iterations_move_far(backend):
-    # A disordered start: the first step's density iterations move particles by 0.2 kernel radii, twice half the
-    # lists' skin, so the lists are built again between iterations (refresh_neighbor_lists). Still the cell
-    # search's pairs: bitwise on the CPU, and, without them, the first step already differed (1e-6 relative).
+def test_neighbour_lists_from_a_disordered_start_stay_with_the_cell_search(backend):
+    # A start jittered by 0.3 spacings: the first step's density iterations move particles by 0.2 kernel radii,
+    # twice the lists' skin, so pairs that close in by more than the skin during the iterations can be left out
+    # where the kernels are nearly zero (neighbor_list.h). Measured on the CPU: positions within 1.4e-3 of a spacing
+    # of the cell search's after one step and 1e-2 after ten, the mean density error equal to 4 digits.
     runs = {}
     for lists in (False, True):
         scene = load_scene("dam_break", **{"pbf.neighbor_list": lists})
@@ -268,12 +269,10 @@ def test_neighbour_lists_follow_particles_the_density_iterations_move_far(backen
         sim = Simulation.from_arrays(scene, st, backend=backend)
         x0 = by_id(sim.state())["position"]
         sim.step(1)
-        moved = np.abs(by_id(sim.state())["position"] - x0).max() / scene.kernel_radius
-        assert moved > 0.1                                     # more than half the skin: the refresh runs
+        assert np.abs(by_id(sim.state())["position"] - x0).max() / scene.kernel_radius > 0.1   # beyond the skin
         sim.step(9)
-        runs[lists] = by_id(sim.state())
-    for key in runs[False]:
-        if backend == "cpu":
-            assert np.array_equal(runs[False][key], runs[True][key]), key
-        elif key == "position":
-            assert np.abs(runs[False][key] - runs[True][key]).max() < 1e-3 * load_scene("dam_break").particles.spacing
+        runs[lists] = (by_id(sim.state()), sim.stats()["density_error_mean"])
+    (scan, err_scan), (listed, err_listed) = runs[False], runs[True]
+    spacing = load_scene("dam_break").particles.spacing
+    assert np.abs(scan["position"] - listed["position"]).max() < 0.05 * spacing
+    assert err_listed == pytest.approx(err_scan, rel=0.01)

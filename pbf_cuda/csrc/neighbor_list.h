@@ -7,14 +7,21 @@
 //
 // The passes keep the search's own test (|r| below the pair's support) on the positions they see, so the lists
 // only change which particles are looked at. Within a step positions move only by the density constraint's
-// corrections (a small fraction of a spacing), less than half the skin, so a pass finds the pairs the cell search
-// would find, in the same order: results agree with the cell search to rounding (tests/test_solver_core.py).
-// Before each density iteration after the first, and after the last, the step checks that no particle moved half
-// a skin or more since the lists were built. The first time one did in a step, the lists are built again from the
-// moved positions, as Verlet lists are kept; a second time, the step's remaining passes use the cell search itself
-// (building again at every check made the 831k-particle `growing` 47% slower in its convective phase, H100).
-// Either way the passes see exactly the pairs the cell search sees. pbf.neighbor_list = false keeps the cell search, for sizes whose lists
-// would not fit in memory (pbf_cuda/memory.py counts them).
+// corrections, so a pass finds the pairs the cell search would find, in the same order, unless two particles
+// closed in on each other by more than the skin during the step's density iterations: then a pair that enters
+// the support's outermost shell is left out, where the kernels and their gradients are nearly zero (the cell
+// search, which reads the cells as sorted, leaves out pairs in the same way when a particle crosses into a cell
+// outside its neighbour's 27). Measured: bitwise equal to the cell search over 25 steps of four scenes on the CPU
+// (tests/test_solver_core.py); from a start jittered by 0.3 spacings, where the first step's iterations move
+// particles 0.2 kernel radii, within 1.4e-3 of a spacing after one step and 1e-2 after ten, with the same mean
+// density error to 4 digits (the dam break, CPU).
+// Making them exact cost more than they save: checking the displacement before every density iteration and
+// building the lists again found some particle past half the skin in most steps of the 831k-particle `growing`
+// once convection is under way (a skin of 0.1 h0; in 65k-particle runs a few particles per step move more than
+// 0.05 h0, none more than 0.1 h0), which made its steps 14.8 ms against 13.5 ms for the cell search and 14.3 ms
+// before the lists (H100, eae6434); a skin of 0.2 h0 made every pass dearer (831k particles: 10.1 ms against
+// 7.9). pbf.neighbor_list = false keeps the cell search, for sizes whose lists would not fit in memory
+// (pbf_cuda/memory.py counts them).
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -22,10 +29,7 @@
 
 namespace pbf {
 
-// Skin of the lists as a fraction of the level-0 kernel radius h0. In `growing` (65k particles, 300 steps of
-// convection, CPU) the density iterations moved a few particles per step by more than half of it (0.05 h0), none
-// by 0.1 h0. A wider skin costs every pass: with 0.2 h0 the 831k-particle `growing` step took 10.1 ms on an H100
-// against 7.9 ms.
+// Skin of the lists as a fraction of the level-0 kernel radius h0.
 constexpr float kNeighborSkin = 0.1f;
 
 // count[i] = candidates of particle i.
@@ -55,20 +59,6 @@ struct FillNeighbors {
         Policy::for_each_candidate(grid, fluid, i, xyz(fluid.pos[i]), h0, skin,
                                    [&](uint32_t j, Vec3, float) { index[k++] = j; });
     }
-};
-
-// Squared distance (m^2) particle i moved since the lists were built at `built`.
-struct MovedSince {
-    const Float4* pos;
-    const Float4* built;
-    PBF_HD float operator()(uint32_t i) const {
-        Vec3 d = xyz(pos[i]) - xyz(built[i]);
-        return dot(d, d);
-    }
-};
-
-struct MaxFloat {
-    PBF_HD float operator()(float a, float b) const { return a > b ? a : b; }
 };
 
 }  // namespace pbf
