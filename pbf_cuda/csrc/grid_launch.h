@@ -123,14 +123,12 @@ inline void build_neighbor_grid(SolverData& d) {
                                                        raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
 }
 
-// This step's neighbour lists (neighbor_list.h) from the sorted particles at pred: counts, their running sum (the
-// row offsets; the host reads the total to size the index array, which only grows), then the candidates.
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their running sum (the row
+// offsets; the host reads the total to size the index array, which only grows), then the candidates.
 template <class Policy>
 void build_neighbor_lists(SolverData& d) {
     d.lists_ready = false;
     if (!d.p.neighbor_list || d.n == 0) return;
-    d.list_builds += 1;
-    thrust::copy(exec(), d.pred.begin(), d.pred.begin() + d.n, d.nbr_built.begin());
     CellRanges fl = d.fluid_ranges(d.pred);
     const float skin = kNeighborSkin * d.p.h0;
     parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.uint_tmp)});
@@ -139,18 +137,6 @@ void build_neighbor_lists(SolverData& d) {
     if (total > d.nbr_index.size()) d.nbr_index.resize(total + total / 4);
     parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
     d.lists_ready = true;
-}
-
-// Where a particle moved half a skin or more since the lists were built (pred during and after the density
-// iterations): the lists again from the moved positions, once a step; after that the cell search itself.
-template <class Policy>
-void refresh_neighbor_lists(SolverData& d) {
-    if (!d.lists_ready) return;
-    const float half_skin = 0.5f * kNeighborSkin * d.p.h0;
-    float moved2 = reduce_over(d.n, MovedSince{raw(d.pred), raw(d.nbr_built)}, 0.0f, MaxFloat{});
-    if (moved2 < half_skin * half_skin) return;
-    if (d.list_builds < 2) build_neighbor_lists<Policy>(d);
-    else d.lists_ready = false;
 }
 
 }  // namespace PBF_BACKEND_NS

@@ -14,7 +14,6 @@
 #pragma once
 #include <algorithm>
 #include <cmath>
-#include "grid_launch.h"
 #include "kernels.h"
 #include "pbf_constraints.h"
 #include "solver_data.h"
@@ -157,21 +156,17 @@ struct VerticalShift {
 };
 
 // Density constraint iterations on the predicted positions (eq. 1-4, 18). With pbf.shift_keeps_anomaly the
-// vertical shift they give each particle is kept (d.shift_y) for the cloud dynamics (thermodynamics.h). The
-// iterations move particles, so the neighbour lists are checked before each later iteration and after the last
-// (refresh_neighbor_lists: built again where a particle moved half their skin).
+// vertical shift they give each particle is kept (d.shift_y) for the cloud dynamics (thermodynamics.h).
 template <class Policy>
 void solve_density(SolverData& d, const CellRanges& walls) {
     const bool keep_shift = !d.shift_y.empty();
     if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
     for (int it = 0; it < d.p.iterations; ++it) {
-        if (it > 0) refresh_neighbor_lists<Policy>(d);
         CellRanges fl = d.fluid_ranges(d.pred);
         parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }
-    refresh_neighbor_lists<Policy>(d);
     d.shift_my = keep_shift ? reduce_over(d.n, VerticalShift{raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>())
                             : 0.0;
 }

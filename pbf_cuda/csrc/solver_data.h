@@ -36,9 +36,7 @@ struct SolverData {
     dvec<uint32_t> sub_start, sub_end;    // adaptive runs: nested sub-cell ranges (grid.h)
     dvec<float> sub_radius, cell_radius;  // adaptive runs: largest kernel radius per sub-cell and per cell
     dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
-    dvec<Float4> nbr_built;               // the positions the lists were built at
     bool lists_ready = false;             // the lists belong to this step's sorted particles
-    int list_builds = 0;                  // lists built this step (neighbor_list.h: at most two)
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
@@ -84,10 +82,7 @@ struct SolverData {
         lambda.resize(cap); density.resize(cap);
         keys.resize(cap); perm.resize(cap);
         float_tmp.resize(cap);
-        if (p.neighbor_list) {
-            nbr_offset.assign(cap + 1, 0u);   // nbr_offset[0] stays 0
-            nbr_built.resize(cap);
-        }
+        if (p.neighbor_list) nbr_offset.assign(cap + 1, 0u);   // nbr_offset[0] stays 0
         if (p.vorticity > 0.0f) omega.resize(cap);
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);

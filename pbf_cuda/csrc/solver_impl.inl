@@ -55,7 +55,6 @@ public:
         d.clock.begin(kPhaseNeighbors);
         predict_positions(d);                        // x* = x + dt (v + dt g)
         build_neighbor_grid(d);                      // sort by the cell of x*, cell ranges
-        d.list_builds = 0;
         build_neighbor_lists<Policy>(d);             // each particle's candidates, once per step
         d.clock.end(kPhaseNeighbors);
         d.clock.begin(kPhaseSolver);
