@@ -70,7 +70,9 @@ def _result(cmd, env):
 
 
 def _unit_box(python):
-    code = "import pysplishsplash, pathlib, sys; print(next(pathlib.Path(sys.prefix).rglob('UnitBox.obj')))"
+    # found without importing the module, which needs libGL preloaded on a headless machine
+    code = ("import importlib.util, pathlib, sys; assert importlib.util.find_spec('pysplishsplash'); "
+            "print(next(pathlib.Path(sys.prefix).rglob('UnitBox.obj')))")
     return subprocess.run([python, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 
