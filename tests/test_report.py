@@ -186,7 +186,7 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["environment", "summary", "table1", "phases", "scaling", "benchmark_history", "adaptive",
+    assert expected == ["environment", "summary", "table1", "phases", "scaling", "benchmark_history", "peers", "adaptive",
                         "compare", "sweep",
                         "adaptive_pareto", "stress", "renders", "figure1", "figure3"]
     # self-contained: only in-page anchors and embedded images; no path of this machine

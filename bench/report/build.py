@@ -71,6 +71,7 @@ COMMANDS = {
     "stress": "cloudpbf stress --out {out}",
     "renders": "cloudpbf demo --out {out}",
     "benchmark_history": "cloudpbf benchmark-history --out {out}",
+    "peers": "cloudpbf peers --out {out}/data/cpu_peer.csv",
 }
 """The command that produces each input (shown when it is missing)."""
 
@@ -548,6 +549,24 @@ def _benchmark_history(inp: Inputs, sec: Section, env: dict | None) -> None:
         sec.add("table", _table(shown, float_format="{:.3g}"), caption="changes between consecutive recorded commits")
     else:
         sec.add("note", "no change beyond the factor between consecutive recorded commits", level="ok")
+
+
+def _peers(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, path = inp.csv("cpu_peer")
+    if df is None:
+        _missing(sec, "cpu_peer.csv (SPlisHSPlasH's PBF dam break against cloudpbf's: cloudpbf peers)", "peers", inp.out)
+        return
+    sec.add("text", "SPlisHSPlasH's DamBreakModel with PBF (4 iterations, dt 0.002 s) and cloudpbf's dam break on the "
+                    "same box, water cube and spacing, timed alternately in one run; the faster repeat of each. "
+                    "Fluid particle-steps per second: more is faster.")
+    best = df.groupby(["threads", "tool", "device"], as_index=False)["particle_steps_per_s"].max()
+    wide = best.pivot_table(index=["threads", "device"], columns="tool", values="particle_steps_per_s").reset_index()
+    if "SPlisHSPlasH 2.19.0" in wide and "cloudpbf" in wide:
+        wide["cloudpbf / SPlisHSPlasH"] = wide["cloudpbf"] / wide["SPlisHSPlasH 2.19.0"]
+    wide.columns.name = None
+    wide["threads"] = wide["threads"].map(lambda t: "GPU" if int(t) == 0 else str(int(t)))
+    commits = ", ".join(sorted(df["commit"].astype(str).unique()))
+    sec.add("table", _table(wide, float_format="{:.3g}"), caption=f"from {path.name}, commit {commits}")
 
 
 PARTICLE_COUNT_COLUMNS = ("n_particles", "particles", "max_particles")

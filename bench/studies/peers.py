@@ -28,7 +28,7 @@ from typing import Annotated, Optional
 import typer
 
 from bench.cli_common import run_command
-from bench.studies.registry import Study, register
+from bench.studies.registry import ReportSection, Study, register
 
 SPLISH_SCENE = {
     "Configuration": {"particleRadius": 0.011, "simulationMethod": 2, "gravitation": [0, -9.81, 0],
@@ -164,7 +164,8 @@ def peers_command(
     typer.echo(f"wrote {out}")
 
 
-register(Study("peers", order=96, outputs=("cpu_peer.csv",), command=peers_command))
+register(Study("peers", order=96, outputs=("cpu_peer.csv",), command=peers_command,
+               report=(ReportSection("peers", "Against SPlisHSPlasH (CPU)", "bench.report.build:_peers", 36),)))
 
 
 def main(argv=None) -> int:
