@@ -58,6 +58,10 @@ def write_synthetic_study(out, renders=True):
                   "ci_low_ms": [0.9, 1.9, 5.9, 6.0], "ci_high_ms": [1.1, 2.1, 6.1, 6.2],
                   "ratio": [None, 2.0, None, 6.1 / 6.0], "change": ["", "slower", "", ""]}).to_csv(
         data / "benchmark_history.csv", index=False)
+    pd.DataFrame({"threads": [2, 2, 0], "tool": ["SPlisHSPlasH 2.19.0", "cloudpbf", "cloudpbf (cuda)"],
+                  "fluid_particles": [85_184, 93_150, 93_150], "ms_per_step": [210.0, 170.0, 1.0],
+                  "particle_steps_per_s": [4.06e5, 5.48e5, 9.3e7], "device": ["cpu", "cpu", DEVICE],
+                  "commit": COMMIT}).to_csv(data / "cpu_peer.csv", index=False)
     pd.DataFrame({"scene": ["growing_adaptive"], "spacing_m": [45.0], "mean_particles": [480_000.0],
                   "max_particles": [600_000], "splitting_ms": [0.1], "merging_ms": [0.5], "merge_passes_ms": [0.3],
                   "compaction_ms": [0.1], "pbf_ms": [11.0], "split_target_ms": [0.3], "merge_target_ms": [1.0],
@@ -551,3 +555,9 @@ def test_render_elsewhere_keeps_what_the_renders_read_and_thins_only_the_animati
     assert [t for t, _ in frames] == [0.0, 10.0]
     assert (kept["cloud"] > 0).sum() == (state["cloud"] > 0).sum()          # every cloudy particle stays
     assert len(kept["cloud"]) < 0.45 * n                                       # clear ones thinned to about 10%
+
+
+def test_peer_section_gives_the_ratio_per_thread_count(full_report):
+    sec = _sections(full_report[1])["peers"]
+    assert "cloudpbf / SPlisHSPlasH" in sec and "1.35" in sec       # 5.48e5 / 4.06e5
+    assert ">GPU<" in sec                                            # threads 0: the GPU row
