@@ -559,11 +559,8 @@ def _peers(inp: Inputs, sec: Section, env: dict | None) -> None:
     sec.add("text", "SPlisHSPlasH's DamBreakModel with PBF (4 iterations, dt 0.002 s) and cloudpbf's dam break on the "
                     "same box, water cube and spacing, timed alternately in one run; the faster repeat of each. "
                     "Fluid particle-steps per second: more is faster.")
-    best = df.groupby(["threads", "tool", "device"], as_index=False)["particle_steps_per_s"].max()
-    wide = best.pivot_table(index=["threads", "device"], columns="tool", values="particle_steps_per_s").reset_index()
-    if "SPlisHSPlasH 2.19.0" in wide and "cloudpbf" in wide:
-        wide["cloudpbf / SPlisHSPlasH"] = wide["cloudpbf"] / wide["SPlisHSPlasH 2.19.0"]
-    wide.columns.name = None
+    from bench.studies.peers import best_rates
+    wide = best_rates(df)
     wide["threads"] = wide["threads"].map(lambda t: "GPU" if int(t) == 0 else str(int(t)))
     commits = ", ".join(sorted(df["commit"].astype(str).unique()))
     sec.add("table", _table(wide, float_format="{:.3g}"), caption=f"from {path.name}, commit {commits}")

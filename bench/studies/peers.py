@@ -43,6 +43,8 @@ SPLISH_SCENE = {
                      "translation": [-1.45, 0.05, 0.0], "scale": [1, 1, 1]}],
 }
 STEPS = 50   # stopAt / timeStepSize
+SPLISH = "SPlisHSPlasH 2.19.0"   # the peer's name in the CSV's tool column
+RATIO = "cloudpbf / SPlisHSPlasH"
 
 SPLISH_DRIVER = """
 import json, sys, time
@@ -128,7 +130,7 @@ def run_peers(threads: list[int], repeats: int = 2, splish_python: str | None = 
         env = dict(os.environ, OMP_NUM_THREADS=str(n_threads))
         for _ in range(repeats):
             if box is not None:
-                timed("SPlisHSPlasH 2.19.0", n_threads, cpu,
+                timed(SPLISH, n_threads, cpu,
                       [python, str(work / "splish.py"), str(work / "scene.json"), str(work / "out")],
                       dict(env, **({"LD_PRELOAD": gl} if gl else {})), steps=STEPS)
             timed("cloudpbf", n_threads, cpu, [sys.executable, str(work / "cloudpbf.py"), str(spacing), "cpu"], env)
@@ -139,6 +141,17 @@ def run_peers(threads: list[int], repeats: int = 2, splish_python: str | None = 
     frame = pd.DataFrame(rows)
     frame["commit"] = commit()
     return frame
+
+
+def best_rates(frame):
+    """Each tool's fastest repeat (fluid particle-steps per second) per thread count and device, one column per
+    tool, with cloudpbf's ratio to SPlisHSPlasH where both ran."""
+    best = frame.groupby(["threads", "tool", "device"], as_index=False)["particle_steps_per_s"].max()
+    wide = best.pivot_table(index=["threads", "device"], columns="tool", values="particle_steps_per_s").reset_index()
+    wide.columns.name = None
+    if SPLISH in wide and "cloudpbf" in wide:
+        wide[RATIO] = wide["cloudpbf"] / wide[SPLISH]
+    return wide
 
 
 def peers_command(
@@ -157,10 +170,7 @@ def peers_command(
         raise typer.BadParameter(f"'{splish_python}': no such Python", param_hint="'--splish-python'")
     frame = run_peers(counts, repeats, splish_python, spacing, echo=typer.echo)
     runs.write_csv(frame, out)
-    best = frame.groupby(["threads", "tool"])["particle_steps_per_s"].max().unstack()
-    if "SPlisHSPlasH 2.19.0" in best and "cloudpbf" in best:
-        best["cloudpbf / SPlisHSPlasH"] = best["cloudpbf"] / best["SPlisHSPlasH 2.19.0"]
-    typer.echo(best.to_string())
+    typer.echo(best_rates(frame).to_string(index=False))
     typer.echo(f"wrote {out}")
 
 
