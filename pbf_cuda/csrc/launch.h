@@ -2,7 +2,7 @@
 // the device vectors, and the phase timers. Everything above it (the phases' launch code, *_launch.h) is
 // written once against these few functions; the including backend file defines PBF_BACKEND_NS (and
 // PBF_BACKEND_CUDA for nvcc), and this header opens that namespace:
-//   parallel_for(n, f)          f(i) for i in [0, n): a Thrust for_each (a CUDA kernel, or an OpenMP loop)
+//   parallel_for(n, f)          f(i) for i in [0, n): one CUDA thread per item, or a Thrust for_each (OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce)
 //   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
@@ -10,9 +10,9 @@
 // On the GPU every call is asynchronous on the default stream: exec() is Thrust's par_nosync with a caching
 // allocator for the temporary storage of sorts, scans and reductions. Thrust's plain thrust::device policy
 // synchronises the stream after every algorithm and allocates (cudaMalloc / cudaFree, both synchronising) the
-// temporary storage of each one: a step of ~100 launches then waits for the GPU ~100 times, which is what a
-// small scene's step was made of (docs/benchmarks.md, "Launch overhead"). Only what the host must read
-// (a reduction's value, copy_if's count, the per-step timers) waits now.
+// temporary storage of each one, so a step of ~100 launches waited for the GPU ~100 times. Only what the host
+// must read (a reduction's value, copy_if's count, the per-step timers) waits now. What made small scenes slow
+// was mostly occupancy, not these waits (parallel_for below; docs/benchmarks.md, "Launch overhead").
 #pragma once
 #ifndef PBF_BACKEND_NS
 #error "launch.h belongs to a backend: backend_cpu.cpp or backend_cuda.cu define PBF_BACKEND_NS and include solver_impl.inl"
