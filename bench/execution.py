@@ -182,8 +182,10 @@ class _Run:
         self.rows = self.resumed_rows.get("stats", [])
         self.profile_rows = self.resumed_rows.get("profiles", [])
         self.step_rows = self.resumed_rows.get("steps", [])
+        self.device_bytes_before = None
         if sim is None:
             self.refused = True            # a failure before the simulation exists leaves nothing behind
+            self.device_bytes_before = self.adapter.device_bytes_in_use(spec)
             sim = self.adapter.create(spec)
             self.refused = False
             self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, seed {spec.seed}, "
@@ -256,6 +258,14 @@ class _Run:
         return self._finish(sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                             time.perf_counter() - started)
 
+    def _device_bytes(self) -> int | None:
+        """Device memory the run holds at its end over what was in use before it made its simulation: with
+        grow-only arrays and cached temporary storage, its peak (None on the CPU and for resumed runs)."""
+        if self.device_bytes_before is None:
+            return None
+        now = self.adapter.device_bytes_in_use(self.spec)
+        return None if now is None else max(0, now - self.device_bytes_before)
+
     def _note_capacity(self, sim, row: dict) -> None:
         """Log (and print) when the adaptive capacity first turns splits away, then each tenfold growth."""
         rejects = int(row.get("split_capacity_rejects", 0) or 0)
@@ -299,6 +309,7 @@ class _Run:
             "timed_steps": max(0, sim.step_count - spec.warmup_steps) if failure is None else None,
             "step_ms": 1e3 * timed_wall / max(1, sim.step_count - spec.warmup_steps) if failure is None else None,
             "backend": backend, "device": device_description(backend),
+            "device_bytes": self._device_bytes(),
             "code": self.identity["code"], "finished": now(),
         }
         if failure is None:

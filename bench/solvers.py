@@ -98,6 +98,11 @@ class SolverAdapter:
         return {}
 
     @staticmethod
+    def device_bytes_in_use(spec) -> int | None:
+        """Bytes in use on the run's accelerator now (context included), or None where there is none."""
+        return None
+
+    @staticmethod
     def snapshot_points(snap: dict) -> dict:
         """A stored snapshot as points with per-point fields (position (N, 3) m, ...), as
         pbf_cuda.export.write_particle_series takes them; particles already are."""
@@ -148,6 +153,19 @@ class ParticleAdapter(SolverAdapter):
     @staticmethod
     def result_fields(largest: int, rejects: int) -> dict:
         return {"max_particles": largest, "split_capacity_rejects": rejects, "cells": None}
+
+    @staticmethod
+    def device_bytes_in_use(spec) -> int | None:
+        """CUDA runs: total - free memory of the device (cudaMemGetInfo). The solver's arrays only grow and
+        its temporary storage is cached, so after the run this is its peak."""
+        if ParticleAdapter.resolve_backend(spec.backend) != "cuda":
+            return None
+        from pbf_cuda.kernels import _core
+        info = getattr(_core(), "cuda_memory_info", None)
+        if info is None:
+            return None
+        free, total = info()
+        return int(total - free) if total else None
 
     @staticmethod
     def check(sim, spec, row: dict | None) -> None:

@@ -10,7 +10,10 @@ grid's own mean step time, compiled before the clock starts).
     cloudpbf pbf-scaling --sizes 250000,1000000,4000000 --out reports/gpu/data/pbf_scaling.csv
 
 writes particles,iterations,step_ms,neighbors_ms,solver_ms,device,commit (then pbf_ms, backend,
-scene, steps, stable, reason, run_dir) to --out.  Particle runs go through the run cache, so a rerun
+scene, steps, stable, reason, run_dir, and the roofline: roofline_ms, the least bytes a step moves over
+the copy bandwidth measured in the same run (bench.roofline); roofline_ratio = step_ms / roofline_ms;
+bytes_per_particle, the device memory the run held at its peak per particle (CUDA only);
+step_bytes_per_particle and copy_bandwidth_gbs) to --out.  Particle runs go through the run cache, so a rerun
 costs nothing.  For the grid alone: ``cloudpbf grid-scaling``.
 """
 from __future__ import annotations
@@ -22,8 +25,8 @@ from typing import Annotated, Optional
 import pandas as pd
 import typer
 
-from bench import runs
-from bench import environment
+from bench import environment, roofline, runs
+from bench.solvers import ParticleAdapter
 from bench.cli_common import (Backend, BackendOpt, DEFAULT_OUT, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               parse_sizes, refusals, run_command, scene_arg, study_context)
 from bench.studies.registry import ReportSection, Study, register
@@ -32,6 +35,7 @@ from pbf_cuda.scene import load_scene
 SCENE = "growing"
 WARMUP_STEPS = 2
 PBF_COLUMNS = ("particles", "iterations", "step_ms", "neighbors_ms", "solver_ms", "device", "commit")
+ROOFLINE_COLUMNS = ("roofline_ms", "roofline_ratio", "bytes_per_particle")
 GRID_COLUMNS = ("cells", "step_ms", "dtype", "device", "commit")
 
 
@@ -41,8 +45,10 @@ def _mean(timings: dict, phase: str):
 
 def pbf_scaling(sizes, backend: str = "auto", runs_root=None, scene_name: str = SCENE, iterations: int = 4,
                 timing_steps: int = 10, quiet: bool = False) -> pd.DataFrame:
-    """One timing run per size, one after another; a DataFrame with PBF_COLUMNS first."""
+    """One timing run per size, one after another; a DataFrame with PBF_COLUMNS first, then the roofline
+    (bench.roofline: the device's copy bandwidth measured once, here, before the runs)."""
     rows = []
+    bandwidth = roofline.copy_bandwidth(ParticleAdapter.resolve_backend(backend))
     for n in sizes:
         scene = load_scene(scene_name).with_particle_count(int(n)).replace(**{
             "pbf.iterations": int(iterations), "time.steps": WARMUP_STEPS + timing_steps,
@@ -51,12 +57,19 @@ def pbf_scaling(sizes, backend: str = "auto", runs_root=None, scene_name: str = 
                             warmup_steps=WARMUP_STEPS)
         res = runs.execute(spec, runs_root, quiet=quiet)
         t = res.timings()
+        floor = roofline.roofline_ms(scene, res.max_particles, bandwidth)
+        held = res.info.get("device_bytes")
         rows.append({"particles": res.max_particles, "iterations": int(iterations),
                      "step_ms": res.step_ms if res.stable else None,
                      "neighbors_ms": _mean(t, "neighbors"), "solver_ms": _mean(t, "solver"),
                      "device": res.device, "commit": environment.commit(), "pbf_ms": _mean(t, "pbf"),
                      "backend": res.backend, "scene": scene_name, "steps": timing_steps,
-                     "stable": res.stable, "reason": res.reason, "run_dir": str(res.path)})
+                     "stable": res.stable, "reason": res.reason, "run_dir": str(res.path),
+                     "roofline_ms": floor,
+                     "roofline_ratio": res.step_ms / floor if floor and res.stable else None,
+                     "bytes_per_particle": held / res.max_particles if held else None,
+                     "step_bytes_per_particle": roofline.step_bytes(scene),
+                     "copy_bandwidth_gbs": bandwidth / 1e9 if bandwidth else None})
     return pd.DataFrame(rows)
 
 
@@ -116,7 +129,7 @@ def scaling_command(
                                             scaling_grid_cells=tuple(cell_sizes or ctx.scale.scaling_grid_cells))
         with refusals():
             frames = run_scaling(ctx)
-    typer.echo(frames["pbf_scaling"][list(PBF_COLUMNS)].to_string(index=False))
+    typer.echo(frames["pbf_scaling"][[*PBF_COLUMNS, *ROOFLINE_COLUMNS]].to_string(index=False))
     typer.echo(frames["grid_scaling"][list(GRID_COLUMNS)].to_string(index=False))
     typer.echo(f"wrote {ctx.data / 'pbf_scaling.csv'} and grid_scaling.csv")
 
@@ -135,7 +148,7 @@ def pbf_scaling_command(
     scene_arg(scene, param="--scene")
     frame = pbf_scaling(counts, backend.value, runs_root, scene, iterations, steps, quiet)
     runs.write_csv(frame, out)
-    typer.echo(frame[list(PBF_COLUMNS)].to_string(index=False))
+    typer.echo(frame[[*PBF_COLUMNS, *ROOFLINE_COLUMNS]].to_string(index=False))
     typer.echo(f"wrote {out}")
 
 

@@ -32,6 +32,36 @@ std::pair<std::size_t, std::size_t> cuda_memory_info() {
     return {free_b, total_b};
 }
 
+// Device-to-device copy bandwidth of device 0 in bytes per second, counting every byte read and every byte
+// written (2 nbytes per copy): the denominator of the step's bandwidth roofline (bench/roofline.py). The mean
+// over `repeats` copies after one warm-up copy, timed with events; 0 without a device or the memory.
+double cuda_copy_bandwidth(std::size_t nbytes, int repeats) {
+    if (cuda_device_count() == 0 || nbytes == 0 || repeats < 1) return 0.0;
+    void* src = nullptr;
+    void* dst = nullptr;
+    if (cudaMalloc(&src, nbytes) != cudaSuccess || cudaMalloc(&dst, nbytes) != cudaSuccess) {
+        cudaGetLastError();
+        if (src) cudaFree(src);
+        return 0.0;
+    }
+    cudaEvent_t start, stop;
+    cudaEventCreate(&start);
+    cudaEventCreate(&stop);
+    cudaMemset(src, 1, nbytes);
+    cudaMemcpy(dst, src, nbytes, cudaMemcpyDeviceToDevice);
+    cudaEventRecord(start);
+    for (int r = 0; r < repeats; ++r) cudaMemcpyAsync(dst, src, nbytes, cudaMemcpyDeviceToDevice);
+    cudaEventRecord(stop);
+    cudaEventSynchronize(stop);
+    float ms = 0.0f;
+    cudaEventElapsedTime(&ms, start, stop);
+    cudaEventDestroy(start);
+    cudaEventDestroy(stop);
+    cudaFree(src);
+    cudaFree(dst);
+    return ms > 0.0f ? 2.0 * double(nbytes) * repeats / (1e-3 * ms) : 0.0;
+}
+
 std::string cuda_device_name() {
     cudaDeviceProp prop;
     if (cuda_device_count() == 0 || cudaGetDeviceProperties(&prop, 0) != cudaSuccess) return "";

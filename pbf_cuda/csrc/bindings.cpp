@@ -326,6 +326,8 @@ NB_MODULE(_core, m) {
         auto info = pbf::cuda_memory_info();
         return std::make_tuple(info.first, info.second);
     });
+    // Device-to-device copy bandwidth in bytes/s (read + written): the step's bandwidth roofline.
+    m.def("cuda_copy_bandwidth", &pbf::cuda_copy_bandwidth, "nbytes"_a, "repeats"_a = 20);
 #endif
     m.def("cuda_device_name", []() {
 #ifdef PBF_WITH_CUDA

@@ -120,6 +120,7 @@ std::unique_ptr<ISolver> make_cuda_solver(const Params& p);
 int cuda_device_count();
 std::string cuda_device_name();
 std::pair<std::size_t, std::size_t> cuda_memory_info();
+double cuda_copy_bandwidth(std::size_t nbytes, int repeats);   // bytes/s, read + written
 #endif
 
 }  // namespace pbf
