@@ -1,5 +1,6 @@
 """The adaptive-pareto study's analysis: seed means, errors against the reference mean, the uniform front and
 the speed-up at equal error, on synthetic runs whose answers are known in closed form."""
+import json
 import math
 from types import SimpleNamespace
 
@@ -116,3 +117,119 @@ def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):
         assert str(z["kind"]) == "adaptive"
     with np.load(written[1]) as z:
         assert str(z["kind"]) == "uniform"
+
+
+# ---- the verdict rests only on configurations stable in every seed -----------------------------------------
+def _frame(adaptive_stable: dict[str, int], uniform_stable: int = 3, seeds: int = 3):
+    """Per-configuration and per-run rows as the study writes them: uniform runs on the front t = 2 / e^2,
+    `cheap-54m` below the front (cheapest and most accurate), `ok-68m` at the 43 m run's error in half its time."""
+    rows = [(f"uniform-{s}m", "uniform", "", s, e, 2.0 / e**2, 1e5 * 2**k, uniform_stable)
+            for k, (s, e) in enumerate([(68, 0.4), (54, 0.2), (43, 0.1), (34, 0.05)])]
+    adaptive = {"cheap-54m": ("paper", 54, 0.06, 1.0, 2e5), "ok-68m": ("lookahead", 68, 0.1, 100.0, 1.5e5)}
+    rows += [(name, "adaptive", crit, s, e, ms, n, adaptive_stable[name])
+             for name, (crit, s, e, ms, n) in adaptive.items()]
+    rows.append(("reference-27m", "reference", "", 27, 0.0, 500.0, 1.7e6, seeds))
+    per_config = pd.DataFrame(rows, columns=["config", "kind", "criterion", "spacing_m", "error", "ms_per_step",
+                                             "particles", "stable_seeds"])
+    per_config = per_config.assign(seeds=seeds, error_seed_spread=0.01,
+                                   pbf_ms_per_particle=1e-5 * per_config["ms_per_step"] / per_config["ms_per_step"])
+    per_run = pd.DataFrame([{"config": r.config, "kind": r.kind, "seed": seed, "stable": seed < r.stable_seeds,
+                             "reason": None if seed < r.stable_seeds else "speed above max_velocity",
+                             "error_this_seed": 0.02 if r.kind == "reference" else r.error}
+                            for r in per_config.itertuples() for seed in range(seeds)])
+    return per_run, per_config
+
+
+def test_verdict_skips_a_variant_stable_in_one_seed_of_three():
+    per_run, per_config = _frame({"cheap-54m": 1, "ok-68m": 3})
+    verdict = ap.build_verdict(per_run, per_config, "growing", "test", "abc")
+    verdict.pop("_speedups")
+    # without the rule cheap-54m would win (it is below the front: 2/0.06^2 = 556 ms at equal error, 556x)
+    assert verdict["best"]["name"] == "ok-68m"
+    assert (verdict["best"]["stable_seeds"], verdict["best"]["seeds"]) == (3, 3)
+    assert verdict["best"]["speedup_at_equal_error"] == pytest.approx(2.0)   # 200 ms at e = 0.1, it takes 100
+    assert verdict["min_stable_seeds"] == 3 and [v["name"] for v in verdict["variants"]] == ["ok-68m"]
+    (out,) = verdict["excluded"]
+    assert out["name"] == "cheap-54m" and (out["stable_seeds"], out["seeds"]) == (1, 3)
+    assert out["reasons"][0] == "stable in 1 of 3 seeds (the verdict needs 3)"
+    assert "seed 1: speed above max_velocity" in out["reasons"]
+    assert out["error_seed_spread"] is None          # one stable seed has no spread
+    assert "ok-68m (stable in 3 of 3 seeds)" in verdict["verdict"] and "cheap-54m (1/3 stable)" in verdict["verdict"]
+    assert verdict["noise_floor"] == pytest.approx(0.02)
+    # a looser rule lets it back in, and then it wins
+    loose = ap.build_verdict(per_run, per_config, "growing", "test", "abc", min_stable_seeds=1)
+    assert loose["best"]["name"] == "cheap-54m" and loose["excluded"] == []
+
+
+def test_no_qualifying_variant_gives_no_best():
+    per_run, per_config = _frame({"cheap-54m": 1, "ok-68m": 2})
+    verdict = ap.build_verdict(per_run, per_config, "growing", "test", "abc")
+    assert verdict["best"] is None and verdict["variants"] == []
+    assert {e["name"] for e in verdict["excluded"]} == {"cheap-54m", "ok-68m"}
+    assert verdict["verdict"].startswith("growing: no best variant: no adaptive variant is stable in at least 3 seeds")
+    # uniform configurations are held to the same rule: with none left there is no front and no best
+    per_run, per_config = _frame({"cheap-54m": 3, "ok-68m": 3}, uniform_stable=2)
+    verdict = ap.build_verdict(per_run, per_config, "growing", "test", "abc")
+    assert verdict["best"] is None and verdict["uniform_front"] == []
+    assert sum(e["kind"] == "uniform" for e in verdict["excluded"]) == 4
+    assert "no uniform front" in verdict["verdict"]
+
+
+def test_verdict_rebuilt_from_the_csvs_keeps_the_runs_device_and_commit(tmp_path):
+    per_run, per_config = _frame({"cheap-54m": 1, "ok-68m": 3})
+    per_run.assign(device="csv-device", commit="csv-commit").to_csv(tmp_path / "adaptive_pareto.csv", index=False)
+    per_config.to_csv(tmp_path / "adaptive_pareto_configs.csv", index=False)
+    verdict = ap.rebuild_verdict(tmp_path, "growing")          # no verdict yet: device and commit of the runs
+    assert (verdict["device"], verdict["commit"]) == ("csv-device", "csv-commit")
+    (tmp_path / "adaptive_verdict.json").write_text('{"device": "H100", "commit": "18dd959", "best": null}')
+    verdict = ap.rebuild_verdict(tmp_path, "growing")
+    written = json.loads((tmp_path / "adaptive_verdict.json").read_text())
+    assert (written["device"], written["commit"]) == ("H100", "18dd959")
+    assert written["best"]["name"] == "ok-68m" and written["excluded"][0]["name"] == "cheap-54m"
+    assert "_speedups" not in written
+    with pytest.raises(FileNotFoundError):
+        ap.rebuild_verdict(tmp_path, "cumulus")
+
+
+def test_from_data_command_prints_the_verdict_and_what_it_left_out(tmp_path):
+    from typer.testing import CliRunner
+    import typer
+    per_run, per_config = _frame({"cheap-54m": 1, "ok-68m": 2})
+    (tmp_path / "data").mkdir()
+    per_run.assign(device="d", commit="c").to_csv(tmp_path / "data" / "adaptive_pareto.csv", index=False)
+    per_config.to_csv(tmp_path / "data" / "adaptive_pareto_configs.csv", index=False)
+    app = typer.Typer()
+    app.command()(ap.adaptive_pareto_command)
+    result = CliRunner().invoke(app, ["--from-data", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "no best variant" in result.output and "best variant: none" in result.output
+    assert "left out: cheap-54m (1/3 seeds stable)" in result.output
+    assert json.loads((tmp_path / "data" / "adaptive_verdict.json").read_text())["best"] is None
+
+
+def test_analysis_leaves_out_a_variant_that_blew_up_in_two_seeds():
+    t = np.linspace(0, 1000, 11)
+    cover = np.linspace(0.1, 0.6, 11)
+    entries, results = [], []
+    steps = SimpleNamespace(total_steps=100)
+    for spacing, n, ms, off in [(68, 1e5, 2.0, 0.2), (54, 2e5, 4.0, 0.1), (43, 4e5, 8.0, 0.05), (34, 8e5, 16.0, 0.025)]:
+        for seed in range(3):
+            entries.append((ap.Config(f"uniform-{spacing}m", "uniform", spacing, ""), seed, steps))
+            results.append(fake_result(t, cover, ms, n, seed_shift=off))
+    for name, ms, unstable in (("paper-54m", 1.0, (0, 1)), ("lookahead-68m", 4.0, ())):
+        for seed in range(3):
+            r = fake_result(t, cover, ms, 4e5, seed_shift=0.05)
+            if seed in unstable:
+                r.stable, r.reason = False, "speed above max_velocity"
+            entries.append((ap.Config(name, "adaptive", 68, name.split("-")[0]), seed, steps))
+            results.append(r)
+    for seed in range(3):
+        entries.append((ap.Config("reference-27m", "reference", 27, ""), seed, steps))
+        results.append(fake_result(t, cover, 32.0, 1.6e6, seed_shift=0.001 * (seed - 1)))
+    per_run, per_config, verdict = ap.analyse(entries, results, "growing", "test", "abc")
+    assert verdict["best"]["name"] == "lookahead-68m" and verdict["best"]["stable_seeds"] == 3
+    assert [(e["name"], e["stable_seeds"], e["seeds"]) for e in verdict["excluded"]] == [("paper-54m", 1, 3)]
+    row = per_config.set_index("config").loc["paper-54m"]
+    assert row["stable_seeds"] == 1 and math.isnan(row["error_seed_spread"])   # one seed: no spread
+    assert row["speedup_at_equal_error"] == pytest.approx(8.0, rel=0.02)      # still in the CSV, not in the verdict
+    assert "_speedups" not in verdict

@@ -107,8 +107,11 @@ def write_synthetic_study(out, renders=True):
     frame.assign(seed=0, device=DEVICE, commit=COMMIT).to_csv(data / "adaptive_pareto.csv", index=False)
     (data / "adaptive_verdict.json").write_text(json.dumps({
         "scene": "growing", "cost_ratio_per_particle": 1.1, "noise_floor": 0.02, "variants": [],
+        "min_stable_seeds": 3,
+        "excluded": [{"name": "paper-68m", "kind": "adaptive", "stable_seeds": 1, "seeds": 3,
+                      "reasons": ["stable in 1 of 3 seeds (the verdict needs 3)"]}],
         "best": {"name": "lookahead-68m", "error": 0.15, "error_seed_spread": 0.02, "ms_per_step": 4.5,
-                 "uniform_ms_at_equal_error": 7.2, "speedup_at_equal_error": 1.6},
+                 "uniform_ms_at_equal_error": 7.2, "speedup_at_equal_error": 1.6, "stable_seeds": 3, "seeds": 3},
         "verdict": "growing: the best adaptive variant, lookahead-68m, is 1.60x faster than uniform particles.",
         "device": DEVICE, "commit": COMMIT}))
     stress = pd.DataFrame([
@@ -215,6 +218,9 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     assert "velocity bound exceeded" in sections["stress"]
     # sweep verdict at equal error 0.05: adaptive 0.6 * (100/50)^3 = 4.8 s, non-adaptive 8 s
     assert "adaptive needs 4.8 s and non-adaptive 8 s: adaptive is 1.67x faster" in sections["sweep"]
+    # adaptive-pareto: the stable-seed rule of the verdict is stated, and what it left out is drawn apart
+    assert "use only configurations stable in at least 3 seeds" in sections["adaptive_pareto"]
+    assert "open markers: left out of the verdict" in sections["adaptive_pareto"]
 
 
 def test_table1_speedups_are_computed_from_the_rows(full_report):
@@ -409,7 +415,8 @@ def test_summary_answers_first_from_the_data(full_report):
     assert "scaled-down CPU runs" in summary
     # the adaptive speed-up is quoted with the error it holds at, never alone
     assert ("growing: best adaptive variant (lookahead-68m) 1.60x faster than uniform particles at equal error "
-            "0.15 (seed spread 0.02, seed-noise floor 0.02): 4.5 against 7.2 ms per step") in summary
+            "0.15 (seed spread 0.02, seed-noise floor 0.02): 4.5 against 7.2 ms per step "
+            "(stable in 3 of 3 seeds)") in summary
     # particles against grid: the final cover's seed mean (95% interval) for both
     assert "final cloud cover, particles non-adaptive 0.25 (n=5) against grid 0.25 (n=5)" in summary
     assert "Largest usable dt (density error &lt;= 1%): 2 s" in summary

@@ -338,7 +338,9 @@ def _summary_adaptive(inp: Inputs) -> str | None:
                      f"uniform particles at equal error {best.get('error', math.nan):.3g} "
                      f"(seed spread {best.get('error_seed_spread', math.nan):.2g}, seed-noise floor "
                      f"{v.get('noise_floor') or math.nan:.2g}): {best.get('ms_per_step', math.nan):.3g} against "
-                     f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step")
+                     f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step"
+                     + (f" (stable in {best['stable_seeds']} of {best['seeds']} seeds)"
+                        if best.get("stable_seeds") is not None and best.get("seeds") else ""))
     if parts:
         return "; ".join(parts)
     path = inp.data / "sweep_verdict.json"
@@ -861,14 +863,20 @@ def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
         verdict = json.loads(verdict_path.read_text())
         sec.add("text", f"{verdict.get('verdict', '')} PBF cost per adaptive particle against a uniform particle at "
                         f"equal count: {verdict.get('cost_ratio_per_particle') or float('nan'):.2f}x.")
-        sec.add("image", plots.adaptive_pareto_plot(configs, verdict.get("noise_floor")), caption=(
+        excluded = [e["name"] for e in verdict.get("excluded") or []]
+        sec.add("image", plots.adaptive_pareto_plot(configs, verdict.get("noise_floor"), excluded), caption=(
             f"{scene}: ms per step against the error of each configuration's seed mean (cover, cloudy volume and "
             "LWP time series against the mean of the finer reference's seeds); bars: seed spread of the error; "
-            "grey band: a single reference seed's error (differences below it cannot be told apart)."))
-        cols = [c for c in ("config", "particles", "ms_per_step", "pbf_ms_per_particle", "error", "error_seed_spread",
+            "grey band: a single reference seed's error (differences below it cannot be told apart)"
+            + ("; open markers: left out of the verdict (unstable in some seeds)." if excluded else ".")))
+        cols = [c for c in ("config", "stable_seeds", "seeds", "particles", "ms_per_step", "pbf_ms_per_particle",
+                            "error", "error_seed_spread",
                             "e_cover", "e_volume", "e_lwp", "e_base", "e_top", "e_profile", "speedup_at_equal_error")
                 if c in configs.columns]
-        sec.add("table", _table(configs[cols]), caption=f"{scene}: one row per configuration (seed means)")
+        rule = verdict.get("min_stable_seeds")
+        sec.add("table", _table(configs[cols]), caption=f"{scene}: one row per configuration (means over its stable "
+                "seeds)" + (f"; the verdict and the uniform front use only configurations stable in at least {rule} "
+                            "seeds" if rule else ""))
         for png in sorted(inp.renders.glob(f"pareto_{scene}_*.png")):
             name = png.stem[len(f"pareto_{scene}_"):]
             sec.add("image", plots.png_file_uri(png), caption=(

@@ -450,14 +450,15 @@ def _truthy(value) -> bool:
 # ------------------------------------------------------------------------------------------
 # adaptive-pareto: adaptive variants against the uniform front
 # ------------------------------------------------------------------------------------------
-def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None) -> str:
+def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None, excluded=()) -> str:
     """ms/step against the seed-mean error per configuration: uniform runs joined as their Pareto front,
     adaptive variants as points with the seed spread of their error as horizontal bars, and the
-    reference seeds' own spread (the noise floor) as a shaded band."""
+    reference seeds' own spread (the noise floor) as a shaded band.  Configurations named in `excluded`
+    (left out of the verdict: unstable in some seeds) are drawn with open markers and stay off the front."""
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
     d = configs[configs["kind"] != "reference"].dropna(subset=["error", "ms_per_step"])
     uniform = d[d["kind"] == "uniform"]
-    front = pareto_front(uniform, "ms_per_step", "error").sort_values("error")
+    front = pareto_front(uniform[~uniform["config"].isin(list(excluded))], "ms_per_step", "error").sort_values("error")
     ax.errorbar(uniform["error"], uniform["ms_per_step"], xerr=uniform["error_seed_spread"], fmt="o",
                 color="#444444", capsize=3, label="uniform")
     ax.plot(front["error"], front["ms_per_step"], "-", color="#444444", lw=1, label="uniform front")
@@ -466,8 +467,12 @@ def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None
                     fontsize=8)
     markers = {"paper": "s", "lookahead": "D", "thermal": "^"}
     for i, (crit, g) in enumerate(d[d["kind"] == "adaptive"].groupby("criterion")):
-        ax.errorbar(g["error"], g["ms_per_step"], xerr=g["error_seed_spread"], fmt=markers.get(crit, "^"),
-                    color=f"C{i + 1}", capsize=3, label=f"adaptive, {crit}")
+        out = g["config"].isin(list(excluded))
+        for part, face, label in ((g[~out], None, f"adaptive, {crit}"),
+                                  (g[out], "none", f"adaptive, {crit}, left out")):
+            if len(part):
+                ax.errorbar(part["error"], part["ms_per_step"], xerr=part["error_seed_spread"],
+                            fmt=markers.get(crit, "^"), color=f"C{i + 1}", mfc=face, capsize=3, label=label)
         for row in g.itertuples():
             ax.annotate(f"{row.spacing_m:g} m", (row.error, row.ms_per_step), textcoords="offset points",
                         xytext=(4, -10), fontsize=8, color=f"C{i + 1}")

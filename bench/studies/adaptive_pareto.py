@@ -17,31 +17,53 @@ realisation of a chaotic flow.  Errors of a configuration (relative L2 norms ove
     e_profile                     the final cloud-fraction profile a_c(z)
     error = (e_cover + e_volume + e_lwp) / 3
 
-``error_seed_spread`` is the standard deviation over seeds of the same error computed per seed: below it two
-configurations cannot be told apart; ``noise_floor`` (in the verdict) is the mean error of a single reference
-seed against the reference mean.  Time is ms per step of the step loop (``step_wall_s / steps``) of the same
-runs; ``pbf_ms_per_particle`` the PBF phase per step divided by the mean particle count.
+``error_seed_spread`` is the standard deviation over seeds of the same error computed per seed (NaN with fewer
+than two stable seeds): below it two configurations cannot be told apart; ``noise_floor`` (in the verdict) is
+the mean error of a single reference seed against the reference mean.  Time is ms per step of the step loop
+(``step_wall_s / steps``) of the same runs; ``pbf_ms_per_particle`` the PBF phase per step divided by the mean
+particle count.
+
+Stable seeds.  A run that blows up has no time and no error, so a configuration's seed mean is a mean over the
+seeds that survived.  The verdict uses only configurations stable in at least ``min_stable_seeds`` seeds
+(default :data:`MIN_STABLE_SEEDS` = None: every seed the study ran), for the uniform front as for the adaptive
+variants, and only those with a finite error and time.  Why all seeds by default: a variant that blows up in
+one seed of three is not a usable setting whatever its survivors cost, and the survivors are not a fair sample
+(a blow-up picks its seeds by their flow, not at random), so a mean over them leans toward the calmer
+realisations and its seed spread is understated (one seed has none).  ``--min-stable-seeds 2`` relaxes the rule
+for a reader who wants to see what the survivors would say.  Configurations that fail it are listed in the
+verdict's ``excluded`` with their stable/total seed counts and the reasons; ``best`` carries the stable seeds it
+rests on.  When no adaptive variant qualifies, ``best`` is null and the verdict says so.
 
 Outputs (OUT/data): ``adaptive_pareto.csv`` (one row per run, with the configuration's errors repeated on
-each of its seeds' rows) and ``adaptive_verdict.json``::
+each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configuration) and
+``adaptive_verdict.json``::
 
     {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
+     "min_stable_seeds": n,                             # the rule the verdict applied
      "variants": [{"name", "spacing_m", "criterion", "speedup_at_equal_error", "error", "ms_per_step",
-                   "particles", "cost_ratio_per_particle"}],
-     "best": {...}, "verdict": "...", "noise_floor": f, "device": ..., "commit": ...}
+                   "particles", "cost_ratio_per_particle", "stable_seeds", "seeds"}],   # the qualifying ones
+     "excluded": [{"name", "kind", "stable_seeds", "seeds", "reasons", ...}],
+     "best": {... one of variants ...} or null, "verdict": "...", "noise_floor": f, "device": ..., "commit": ...}
 
 where a variant's speed-up is the uniform front's ms/step, interpolated (log-log) at the variant's error,
 divided by the variant's own; a variant more accurate than every uniform run, or less than all of them, has
-no speed-up (null) and the verdict says so.
+no speed-up (null) and the verdict says so.  The cost ratio is the median over the qualifying variants.
 
-    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--scale gpu]
+``--from-data`` rebuilds ``adaptive_verdict[_SCENE].json`` from ``adaptive_pareto[_SCENE].csv`` and
+``adaptive_pareto_configs[_SCENE].csv`` in OUT/data without running anything (device and commit are kept from
+the verdict file already there, else taken from the runs' CSV: they belong to the runs, not to the rebuild).
+
+    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--min-stable-seeds N] [--scale gpu]
+    cloudpbf adaptive-pareto --scene growing --from-data --out reports/gpu
 """
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from dataclasses import dataclass
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Optional
 
 import click
 import numpy as np
@@ -65,6 +87,9 @@ REFERENCE_SPACING = 27.0
 ANALYSIS_GRID = (32, 32, 32)
 SPACING_FACTOR = {"gpu": 1.0, "cpu": 3.0, "smoke": 6.0}
 """Spacings are multiplied by this at smaller scales (cpu: 27x fewer particles, smoke: 216x)."""
+MIN_STABLE_SEEDS: int | None = None
+"""Stable seeds a configuration needs to enter the verdict (uniform front and adaptive variants); None: all the
+seeds the study ran (see the module's docstring for why)."""
 SERIES = (("cover", "cloud_cover"), ("volume", "cloudy_volume"), ("lwp", "lwp_mean"),
           ("base", "cloud_base"), ("top", "cloud_top"))
 
@@ -214,7 +239,8 @@ def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
 
 
 def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.RunResult], scene_name: str,
-            device: str, commit: str) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+            device: str, commit: str, min_stable_seeds: int | None = MIN_STABLE_SEEDS
+            ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
     """(per-run rows, per-configuration rows, verdict)."""
     sigs = [signature(r) for r in results]
     by_config: dict[Config, list[int]] = {}
@@ -222,8 +248,6 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
         by_config.setdefault(config, []).append(i)
     ref_config = next(c for c in by_config if c.kind == "reference")
     reference = mean_signature([sigs[i] for i in by_config[ref_config]])
-    ref_seed_errors = [errors(sigs[i], reference)["error"] for i in by_config[ref_config]]
-    noise_floor = float(np.nanmean(ref_seed_errors)) if ref_seed_errors else math.nan
 
     run_rows, config_rows = [], []
     for config, idx in by_config.items():
@@ -239,7 +263,8 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
                    "spacing_m": config.spacing_m, "seeds": len(idx), "stable_seeds": int(sum(stable)),
                    "particles": float(np.nanmean(parts)), "ms_per_step": float(np.nanmean(ms)),
                    "ms_per_step_spread": float(np.nanstd(ms)), "pbf_ms": float(np.nanmean(pbf)),
-                   **err, "error_seed_spread": float(np.nanstd(per_seed)) if np.isfinite(per_seed).any() else math.nan}
+                   **err, "error_seed_spread": (float(np.nanstd(per_seed)) if np.isfinite(per_seed).sum() >= 2
+                                                else math.nan)}
         row["pbf_ms_per_particle"] = row["pbf_ms"] / row["particles"] if row["particles"] else math.nan
         config_rows.append(row)
         for i, e_seed in zip(idx, per_seed):
@@ -251,58 +276,189 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
                              "ms_per_step": _ms_per_step(res, entries[i][2].total_steps), "pbf_ms": _pbf_ms(res),
                              "error_this_seed": e_seed, **{f"config_{k}": v for k, v in err.items()},
                              "device": res.device, "commit": commit, "run_dir": str(res.path)})
-    per_config = pd.DataFrame(config_rows)
-    uniform = per_config[per_config.kind == "uniform"].dropna(subset=["error", "ms_per_step"])
+    per_run, per_config = pd.DataFrame(run_rows), pd.DataFrame(config_rows)
+    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds)
+    per_config["speedup_at_equal_error"] = per_config["config"].map(verdict.pop("_speedups"))
+    return per_run, per_config, verdict
+
+
+def required_stable_seeds(per_config: pd.DataFrame, min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> int:
+    """The stable seeds a configuration needs: `min_stable_seeds`, or (None) every seed the study ran."""
+    if min_stable_seeds is not None:
+        if int(min_stable_seeds) < 1:
+            raise ValueError(f"min_stable_seeds = {min_stable_seeds}: at least 1")
+        return int(min_stable_seeds)
+    return int(per_config["seeds"].max()) if len(per_config) else 1
+
+
+def _qualification(per_run: pd.DataFrame | None, per_config: pd.DataFrame, required: int) -> dict[str, list[str]]:
+    """config name -> the reasons it is left out of the verdict (empty: it qualifies)."""
+    out = {}
+    for row in per_config.itertuples():
+        reasons = []
+        stable, seeds = int(row.stable_seeds), int(row.seeds)
+        if stable < required:
+            reasons.append(f"stable in {stable} of {seeds} seeds (the verdict needs {required})")
+            if per_run is not None and "stable" in per_run:
+                bad = per_run[(per_run["config"] == row.config) & ~per_run["stable"].map(_truthy)]
+                for r in bad.itertuples():
+                    why = getattr(r, "reason", None)
+                    why = why if isinstance(why, str) and why else "unstable"
+                    reasons.append(f"seed {int(r.seed)}: {why}")
+        elif not (np.isfinite(row.error) and np.isfinite(row.ms_per_step)):
+            reasons.append("no measurable error or time (no cloud in the seed mean, or no timed step)")
+        out[row.config] = reasons
+    return out
+
+
+def _truthy(value) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("true", "1", "yes")
+    return bool(value) and not (isinstance(value, float) and math.isnan(value))
+
+
+def _none_if_nan(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_name: str, device: str, commit: str,
+                  min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> dict:
+    """The verdict from the per-configuration rows (``adaptive_pareto_configs.csv``) and the per-run rows
+    (``adaptive_pareto.csv``: failure reasons and the reference seeds' errors, for the noise floor).
+
+    Only configurations stable in at least :func:`required_stable_seeds` seeds, with a finite error and time,
+    enter the uniform front and compete for ``best``; the others are listed under ``excluded``.  The result has
+    a private ``_speedups`` (config -> speed-up of every adaptive configuration with an error, for the CSV)."""
+    required = required_stable_seeds(per_config, min_stable_seeds)
+    reasons = _qualification(per_run, per_config, required)
+    ok = per_config["config"].map(lambda c: not reasons[c])
+    uniform = per_config[(per_config.kind == "uniform") & ok]
     front = uniform_front(uniform) if len(uniform) else uniform
-    variants = []
-    for row in per_config[per_config.kind == "adaptive"].itertuples():
-        t_uniform = time_at_error(front, row.error)
-        speedup = t_uniform / row.ms_per_step if np.isfinite(t_uniform) else math.nan
-        cost = row.pbf_ms_per_particle / pbf_cost_at_count(uniform, row.particles) if row.particles else math.nan
-        variants.append({"name": row.config, "criterion": row.criterion, "spacing_m": row.spacing_m,
-                         "speedup_at_equal_error": None if not np.isfinite(speedup) else speedup,
-                         "error": row.error, "error_seed_spread": row.error_seed_spread,
-                         "ms_per_step": row.ms_per_step, "uniform_ms_at_equal_error":
-                         None if not np.isfinite(t_uniform) else t_uniform,
-                         "particles": row.particles, "cost_ratio_per_particle": cost})
-    per_config["speedup_at_equal_error"] = per_config["config"].map(
-        {v["name"]: v["speedup_at_equal_error"] for v in variants})
-    costs = [v["cost_ratio_per_particle"] for v in variants if np.isfinite(v["cost_ratio_per_particle"])]
+    variants, excluded, speedups = [], [], {}
+    for row in per_config[per_config.kind != "reference"].itertuples():
+        entry = {"name": row.config, "criterion": row.criterion if isinstance(row.criterion, str) else "",
+                 "spacing_m": float(row.spacing_m), "stable_seeds": int(row.stable_seeds), "seeds": int(row.seeds),
+                 "error": _none_if_nan(row.error), "ms_per_step": _none_if_nan(row.ms_per_step)}
+        if row.kind == "adaptive":
+            t_uniform = time_at_error(front, row.error)
+            speedup = t_uniform / row.ms_per_step if np.isfinite(t_uniform) else math.nan
+            speedups[row.config] = _none_if_nan(speedup)
+            base = pbf_cost_at_count(uniform, row.particles) if row.particles else math.nan
+            entry |= {"speedup_at_equal_error": _none_if_nan(speedup),
+                      "uniform_ms_at_equal_error": _none_if_nan(t_uniform),
+                      # one stable seed has no spread (older CSVs wrote 0 for it)
+                      "error_seed_spread": _none_if_nan(row.error_seed_spread) if row.stable_seeds >= 2 else None,
+                      "particles": float(row.particles),
+                      "cost_ratio_per_particle": _none_if_nan(row.pbf_ms_per_particle / base)
+                      if np.isfinite(base) and base else None}
+        if reasons[row.config]:
+            excluded.append({"name": row.config, "kind": row.kind, **{k: v for k, v in entry.items() if k != "name"},
+                             "reasons": reasons[row.config]})
+        elif row.kind == "adaptive":
+            variants.append(entry)
+    costs = [v["cost_ratio_per_particle"] for v in variants if v["cost_ratio_per_particle"] is not None]
     verdict = {"scene": scene_name, "cost_ratio_per_particle": float(np.median(costs)) if costs else None,
-               "variants": variants, "noise_floor": noise_floor,
+               "min_stable_seeds": required, "variants": variants, "excluded": excluded,
+               "noise_floor": _noise_floor(per_run),
+               "reference_stable_seeds": _reference_seeds(per_config),
                "uniform_front": front[["config", "error", "ms_per_step"]].to_dict("records"),
                "device": device, "commit": commit}
-    verdict["best"], verdict["verdict"] = _verdict_text(variants, front, noise_floor, scene_name)
-    return pd.DataFrame(run_rows), per_config, verdict
+    verdict["best"], verdict["verdict"] = _verdict_text(variants, excluded, front, verdict["noise_floor"],
+                                                        scene_name, required)
+    verdict["_speedups"] = speedups
+    return verdict
 
 
-def _verdict_text(variants: list[dict], front: pd.DataFrame, noise_floor: float, scene_name: str):
+def _noise_floor(per_run: pd.DataFrame | None) -> float:
+    """Mean error of a single reference seed against the reference mean (NaN without reference rows)."""
+    if per_run is None or "error_this_seed" not in per_run:
+        return math.nan
+    ref = per_run.loc[per_run["kind"] == "reference", "error_this_seed"].to_numpy(float)
+    return float(np.nanmean(ref)) if np.isfinite(ref).any() else math.nan
+
+
+def _reference_seeds(per_config: pd.DataFrame) -> str | None:
+    ref = per_config[per_config.kind == "reference"]
+    return f"{int(ref['stable_seeds'].iloc[0])} of {int(ref['seeds'].iloc[0])}" if len(ref) else None
+
+
+def _verdict_text(variants: list[dict], excluded: list[dict], front: pd.DataFrame, noise_floor: float,
+                  scene_name: str, required: int):
+    left_out = [e for e in excluded if e["kind"] == "adaptive"]
+    left_uniform = [e for e in excluded if e["kind"] == "uniform"]
+    note = ""
+    if left_out or left_uniform:
+        note = " Left out (stable in fewer than {} seeds, or no error): {}.".format(
+            required, ", ".join(f"{e['name']} ({e['stable_seeds']}/{e['seeds']} stable)"
+                                for e in left_uniform + left_out))
     scored = [v for v in variants if v["speedup_at_equal_error"] is not None]
     if scored:
         best = max(scored, key=lambda v: v["speedup_at_equal_error"])
         s = best["speedup_at_equal_error"]
         word = "faster" if s >= 1 else "slower"
-        text = (f"{scene_name}: the best adaptive variant, {best['name']}, is {s if s >= 1 else 1 / s:.2f}x {word} "
-                f"than uniform particles at its error {best['error']:.3f} (seed-noise floor {noise_floor:.3f}).")
-        return best, text
-    if not len(front) or not variants:
-        return None, f"{scene_name}: not enough stable runs with a measurable error to compare."
+        text = (f"{scene_name}: the best adaptive variant, {best['name']} (stable in {best['stable_seeds']} of "
+                f"{best['seeds']} seeds), is {s if s >= 1 else 1 / s:.2f}x {word} than uniform particles at its "
+                f"error {best['error']:.3f} (seed-noise floor {noise_floor:.3f}).")
+        return best, text + note
+    if not variants:
+        what = "adaptive variant" if left_out else "adaptive run"
+        return None, (f"{scene_name}: no best variant: no {what} is stable in at least {required} seeds with a "
+                      f"measurable error." + note)
+    if len(front) < 2:
+        return None, (f"{scene_name}: no best variant: fewer than two uniform configurations are stable in at "
+                      f"least {required} seeds with a measurable error, so there is no uniform front to compare "
+                      f"with." + note)
     lo, hi = front["error"].min(), front["error"].max()
     errs = ", ".join(f"{v['name']} {v['error']:.3f}" for v in variants)
-    return None, (f"{scene_name}: no adaptive variant lies within the uniform front's error range "
-                  f"[{lo:.3f}, {hi:.3f}] (adaptive errors: {errs}; seed-noise floor {noise_floor:.3f}).")
+    return None, (f"{scene_name}: no best variant: no adaptive variant lies within the uniform front's error range "
+                  f"[{lo:.3f}, {hi:.3f}] (adaptive errors: {errs}; seed-noise floor {noise_floor:.3f})." + note)
 
 
-def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: int = 3) -> dict:
+def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int | None = MIN_STABLE_SEEDS,
+                    write: bool = True) -> dict:
+    """The verdict again from DATA's ``adaptive_pareto[_SCENE].csv`` and ``adaptive_pareto_configs[_SCENE].csv``,
+    without running anything; device and commit stay those of the verdict already there (else the runs' CSV).
+    Writes ``adaptive_verdict[_SCENE].json`` unless `write` is False."""
+    if scene_name not in SCENES:
+        raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
+    data_dir = Path(data_dir)
+    suffix = "" if scene_name == "growing" else f"_{scene_name}"
+    runs_path = data_dir / f"adaptive_pareto{suffix}.csv"
+    configs_path = data_dir / f"adaptive_pareto_configs{suffix}.csv"
+    for path in (runs_path, configs_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing (run `cloudpbf adaptive-pareto --scene {scene_name}` first)")
+    per_run = pd.read_csv(runs_path, float_precision="round_trip")
+    per_config = pd.read_csv(configs_path, float_precision="round_trip")
+    verdict_path = data_dir / f"adaptive_verdict{suffix}.json"
+    old = json.loads(verdict_path.read_text()) if verdict_path.is_file() else {}
+    device = old.get("device") or _first(per_run, "device") or "unknown"
+    commit = old.get("commit") or _first(per_run, "commit") or "unknown"
+    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds)
+    verdict.pop("_speedups")
+    if write:
+        runs.atomic_write_json(verdict_path, verdict)
+    return verdict
+
+
+def _first(frame: pd.DataFrame, column: str) -> str | None:
+    values = frame[column].dropna() if column in frame else []
+    return str(values.iloc[0]) if len(values) else None
+
+
+def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: int = 3,
+                        min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> dict:
     """Run (or read) the study for one scene; write adaptive_pareto[_SCENE].csv and the verdict json."""
     if scene_name not in SCENES:
         raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
     if not 3 <= int(seeds) <= 100:
         raise ValueError(f"seeds = {seeds}: allowed 3..100 (seed means need at least three)")
+    if min_stable_seeds is not None and not 1 <= int(min_stable_seeds) <= int(seeds):
+        raise ValueError(f"min_stable_seeds = {min_stable_seeds}: allowed 1..{seeds} (the seeds run)")
     entries = plan(ctx, scene_name, int(seeds))
     results = ctx.run_parallel([e[2] for e in entries], f"adaptive-pareto {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
-    per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit)
+    per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds)
     suffix = "" if scene_name == "growing" else f"_{scene_name}"
     runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")
     runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
@@ -313,12 +469,15 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
 # ---- renders: the best variant beside the uniform runs at its level-0 and finest spacings ---------------
 def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
     """The configurations drawn side by side: the best adaptive variant (or, without a scored one, the one of
-    lowest error), the uniform run at its level-0 spacing, and the uniform run nearest its finest spacing."""
+    lowest error among those the verdict kept, else among all), the uniform run at its level-0 spacing, and the
+    uniform run nearest its finest spacing."""
     adaptive = per_config[per_config.kind == "adaptive"].dropna(subset=["error"])
     uniform = per_config[per_config.kind == "uniform"]
     if adaptive.empty or uniform.empty:
         return []
-    best = (verdict.get("best") or {}).get("name") or adaptive.sort_values("error")["config"].iloc[0]
+    qualified = adaptive[adaptive["config"].isin([v["name"] for v in verdict.get("variants") or []])]
+    best = ((verdict.get("best") or {}).get("name")
+            or (qualified if len(qualified) else adaptive).sort_values("error")["config"].iloc[0])
     spacing = float(per_config.loc[per_config.config == best, "spacing_m"].iloc[0])
     names = [best]
     for target in (spacing, spacing / 2.0):   # level 0, and level 3 (h_l = h0 2^(-l/3): spacing halves)
@@ -381,6 +540,13 @@ def render_pareto_states(states_dir, out_dir, scene_name: str) -> list:
 def adaptive_pareto_command(
     scene: Annotated[str, typer.Option(help="growing (the paper's example 1) or cumulus (one heated patch)")] = "growing",
     seeds: Annotated[int, typer.Option(min=3, max=100, help="noise seeds per configuration (>= 3)")] = 3,
+    min_stable_seeds: Annotated[Optional[int], typer.Option(
+        "--min-stable-seeds", min=1, max=100,
+        help="stable seeds a configuration needs to enter the verdict (uniform front and best variant); "
+             "default: every seed run")] = None,
+    from_data: Annotated[bool, typer.Option(
+        "--from-data", help="run nothing: rebuild OUT/data/adaptive_verdict[_SCENE].json from the study's CSVs "
+                            "there (device and commit stay those of the runs)")] = False,
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
     quiet: QuietOpt = False, gpus: GpusOpt = None,
@@ -388,14 +554,33 @@ def adaptive_pareto_command(
     """Adaptive variants against uniform runs at four spacings: seed-mean errors against a finer reference."""
     if scene not in SCENES:
         raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
+    if from_data:
+        try:
+            verdict = rebuild_verdict(Path(out) / "data", scene, min_stable_seeds)
+        except FileNotFoundError as exc:
+            raise click.UsageError(str(exc)) from None
+        _echo_verdict(verdict)
+        return
+    if min_stable_seeds is not None and min_stable_seeds > seeds:
+        raise typer.BadParameter(f"{min_stable_seeds}: more than --seeds {seeds}", param_hint="'--min-stable-seeds'")
     with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
-            result = run_adaptive_pareto(ctx, scene, seeds)
-    cols = ["config", "particles", "ms_per_step", "error", "error_seed_spread", "e_base", "e_top", "e_profile",
-            "speedup_at_equal_error"]
+            result = run_adaptive_pareto(ctx, scene, seeds, min_stable_seeds)
+    cols = ["config", "stable_seeds", "seeds", "particles", "ms_per_step", "error", "error_seed_spread", "e_base",
+            "e_top", "e_profile", "speedup_at_equal_error"]
     typer.echo(result["configs"][cols].to_string(index=False))
-    typer.echo(result["verdict"]["verdict"])
-    typer.echo(f"PBF cost per adaptive particle / per uniform particle: {result['verdict']['cost_ratio_per_particle']}")
+    _echo_verdict(result["verdict"])
+
+
+def _echo_verdict(verdict: dict) -> None:
+    """The verdict, the variants it left out and why, and the cost ratio, as the command prints them."""
+    typer.echo(verdict["verdict"])
+    if verdict.get("best") is None:
+        typer.echo("best variant: none")
+    for e in verdict.get("excluded", []):
+        typer.echo(f"  left out: {e['name']} ({e['stable_seeds']}/{e['seeds']} seeds stable): "
+                   + "; ".join(e["reasons"]))
+    typer.echo(f"PBF cost per adaptive particle / per uniform particle: {verdict['cost_ratio_per_particle']}")
 
 
 register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
