@@ -164,6 +164,8 @@ class ParticleAdapter(SolverAdapter):
         info = getattr(_core(), "cuda_memory_info", None)
         if info is None:
             return None
+        import gc
+        gc.collect()                   # a previous run's arrays are freed now, not during this run
         free, total = info()
         return int(total - free) if total else None
 

@@ -66,3 +66,18 @@ def test_cuda_run_reports_its_peak_memory_and_roofline(tmp_path):
     assert row["copy_bandwidth_gbs"] > 100
     assert row["step_ms"] >= row["roofline_ms"]
     assert isinstance(frame, pd.DataFrame)
+
+
+def test_memory_estimate_against_the_measured_peak():
+    # The device memory an H100 run held per particle (pbf_scaling.csv, bytes_per_particle, 16M particles and
+    # more, where the fixed costs are small): the estimate that gates every run is at or above it, and close.
+    from pathlib import Path
+    from pbf_cuda.memory import estimate_memory
+    data = pd.read_csv(Path(__file__).resolve().parents[1] / "reports/gpu/data/pbf_scaling.csv")
+    rows = data[(data["particles"] >= 16_000_000) & data["bytes_per_particle"].notna()]
+    assert len(rows) >= 2 and (~rows["neighbor_list"]).any()
+    for _, r in rows.iterrows():
+        scene = load_scene("growing").replace(**{"pbf.neighbor_list": bool(r["neighbor_list"])})
+        est = estimate_memory(scene.with_particle_count(int(r["particles"])), "cuda")
+        ratio = est.device_bytes / est.fluid / r["bytes_per_particle"]
+        assert 0.97 <= ratio <= 1.3, (r["particles"], r["neighbor_list"], ratio)

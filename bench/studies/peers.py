@@ -83,9 +83,11 @@ def _result(cmd, env):
 
 
 def _unit_box(python):
-    # found without importing the module, which needs libGL preloaded on a headless machine
-    code = ("import importlib.util, pathlib, sys; assert importlib.util.find_spec('pysplishsplash'); "
-            "print(next(pathlib.Path(sys.prefix).rglob('UnitBox.obj')))")
+    # found without importing the module, which needs libGL preloaded on a headless machine; under the
+    # environment's prefix, or beside the module where it was installed with pip --target
+    code = ("import importlib.util, pathlib, sys; spec = importlib.util.find_spec('pysplishsplash'); assert spec; "
+            "roots = [pathlib.Path(sys.prefix), pathlib.Path(spec.origin).parent]; "
+            "print(next(p for r in roots for p in r.rglob('UnitBox.obj')))")
     return subprocess.run([python, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 

@@ -65,6 +65,7 @@ def pbf_scaling(sizes, backend: str = "auto", runs_root=None, scene_name: str = 
                      "device": res.device, "commit": environment.commit(), "pbf_ms": _mean(t, "pbf"),
                      "backend": res.backend, "scene": scene_name, "steps": timing_steps,
                      "stable": res.stable, "reason": res.reason, "run_dir": str(res.path),
+                     "neighbor_list": bool(scene.pbf.neighbor_list),
                      "roofline_ms": floor,
                      "roofline_ratio": res.step_ms / floor if floor and res.stable else None,
                      "bytes_per_particle": held / res.max_particles if held else None,

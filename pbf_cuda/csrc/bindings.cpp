@@ -148,6 +148,7 @@ public:
         d["n_particles"] = s.n_particles;
         d["density_error_mean"] = s.density_error_mean;
         d["density_error_max"] = s.density_error_max;
+        d["neighbor_lists"] = s.neighbor_lists;
         d["density_excess_mean"] = s.density_excess_mean;
         d["density_deficit_mean"] = s.density_deficit_mean;
         d["max_speed"] = s.max_speed;

@@ -2,6 +2,8 @@
 // sort of the particles by the cell of their predicted position x* with the cell ranges (uniform runs) or the
 // nested sub-cell ranges and largest radii (adaptive runs, section 5.2).
 #pragma once
+#include <algorithm>
+
 #include "grid.h"
 #include "solver_data.h"
 
@@ -125,16 +127,37 @@ inline void build_neighbor_grid(SolverData& d) {
 
 // This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their running sum (the row
 // offsets; the host reads the total to size the index array, which only grows), then the candidates.
+struct CountAt {
+    const uint32_t* count;
+    PBF_HD unsigned long long operator()(uint32_t i) const { return count[i]; }
+};
+
+// The lists' offsets are uint32: a step whose candidates number more than 2^32 - 1 (about 120M particles
+// at ~35 candidates each), or whose index array cannot be allocated, gives the lists up for the rest of the
+// run and searches the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
 template <class Policy>
 void build_neighbor_lists(SolverData& d) {
     d.lists_ready = false;
-    if (!d.p.neighbor_list || d.n == 0) return;
+    if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return;
     CellRanges fl = d.fluid_ranges(d.pred);
     const float skin = kNeighborSkin * d.p.h0;
     parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.uint_tmp)});
+    const unsigned long long total = reduce_over(d.n, CountAt{raw(d.uint_tmp)}, 0ull, thrust::plus<unsigned long long>());
+    if (total > 0xffffffffull) {
+        d.give_up_lists();
+        return;
+    }
+    if (total > d.nbr_index.size()) {
+        try {
+            d.nbr_index.clear();
+            d.nbr_index.shrink_to_fit();
+            d.nbr_index.resize(std::min<unsigned long long>(total + total / 4, 0xffffffffull));
+        } catch (const std::bad_alloc&) {
+            d.give_up_lists();
+            return;
+        }
+    }
     thrust::inclusive_scan(exec(), d.uint_tmp.begin(), d.uint_tmp.begin() + d.n, d.nbr_offset.begin() + 1);
-    const std::size_t total = uint32_t(d.nbr_offset[d.n]);
-    if (total > d.nbr_index.size()) d.nbr_index.resize(total + total / 4);
     parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
     d.lists_ready = true;
 }

@@ -60,6 +60,7 @@ struct StepStats {
     long long step = 0;
     double time = 0.0;
     std::size_t n_particles = 0;
+    bool neighbor_lists = false;        // pbf.neighbor_list in use (false once given up: grid_launch.h)
     double density_error_mean = 0.0;
     double density_error_max = 0.0;
     double density_excess_mean = 0.0;   // mean max(rho/rho0 - 1, 0): compression

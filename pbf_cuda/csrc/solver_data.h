@@ -37,6 +37,13 @@ struct SolverData {
     dvec<float> sub_radius, cell_radius;  // adaptive runs: largest kernel radius per sub-cell and per cell
     dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
     bool lists_ready = false;             // the lists belong to this step's sorted particles
+    bool lists_given_up = false;          // too many candidates for uint32 offsets, or no memory (grid_launch.h)
+    void give_up_lists() {
+        lists_given_up = true;
+        lists_ready = false;
+        nbr_index.clear();
+        nbr_index.shrink_to_fit();
+    }
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start

@@ -209,6 +209,7 @@ public:
         s.step = d.step;
         s.time = d.time;
         s.n_particles = d.n;
+        s.neighbor_lists = d.p.neighbor_list && !d.lists_given_up;
         if (d.n > 0) {
             Reduced r = reduce_checks(d);
             s.density_error_mean = r.err_sum / double(d.n);
