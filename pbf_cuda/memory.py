@@ -29,6 +29,7 @@ HOST_BYTES_PER_BOUNDARY = 96
 NEIGHBOR_LIST_HEADROOM = 1.25    # the index array grows to 1.25x the entries it needs (neighbor_list.h)
 MAX_CELLS = 2**32 - 1            # the solver's cell index is a uint32
 MAX_SLOTS = 2**32 - 2            # particle ids are uint32
+MAX_LIST_ENTRIES = 2**32 - 1     # the neighbour lists' offsets are uint32
 SAFETY = 0.8                     # use at most this fraction of what is available
 
 
@@ -105,15 +106,19 @@ def solver_bytes_per_slot(scene: Scene) -> int:
     return int(bytes_)
 
 
-def neighbor_list_bytes_per_slot(scene: Scene) -> int:
+def neighbor_list_bytes_per_slot(scene: Scene, slots: int = 1) -> int:
     """Bytes per particle slot of the per-step neighbour lists (pbf.neighbor_list): a row offset and the
     candidates within (1 + skin) kernel radii of a full lattice neighbourhood, uint32 each, with the index
-    array's headroom; adaptive scenes twice that (a coarse particle beside finer ones has more candidates)."""
+    array's headroom; adaptive scenes twice that (a coarse particle beside finer ones has more candidates).
+    Past MAX_LIST_ENTRIES candidates in all (`slots` of them) the solver gives the lists up and searches
+    the cells (grid_launch.h): the offsets only."""
     if not scene.pbf.neighbor_list:
         return 0
     candidates = 4.0 / 3.0 * math.pi * (1.1 * scene.particles.kernel_ratio) ** 3
     if scene.adaptive.enabled:
         candidates *= 2.0
+    if slots * candidates > MAX_LIST_ENTRIES:
+        return 4
     return 4 + int(math.ceil(4 * NEIGHBOR_LIST_HEADROOM * candidates))
 
 
@@ -125,7 +130,7 @@ def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None
     slots = particle_slots(scene, n)
     nb = boundary_count(scene) if boundary is None else int(boundary)
     cells = cell_count(scene)
-    per_slot = solver_bytes_per_slot(scene) + neighbor_list_bytes_per_slot(scene)
+    per_slot = solver_bytes_per_slot(scene) + neighbor_list_bytes_per_slot(scene, slots)
     device = slots * per_slot + nb * BYTES_PER_BOUNDARY + cells * BYTES_PER_CELL
     host = n * HOST_BYTES_PER_PARTICLE + nb * HOST_BYTES_PER_BOUNDARY
     return MemoryEstimate(n, slots, nb, cells, device, host)
