@@ -241,6 +241,7 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
     for lists in (False, True):
         sim = Simulation(load_scene(name, **overrides, **{"pbf.neighbor_list": lists}), backend=backend, seed=2)
         sim.step(25)
+        assert sim.stats()["neighbor_lists"] is lists          # in use (not given up: far below 2^32 entries)
         runs[lists] = by_id(sim.state())
     scan, listed = runs[False], runs[True]
     assert scan.keys() == listed.keys() and len(scan["id"]) == len(listed["id"])
