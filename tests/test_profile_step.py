@@ -1,0 +1,27 @@
+"""benchmarks/profile_step.py: Nsight Compute's per-launch durations summed by kernel."""
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import profile_step  # noqa: E402
+
+NCU = '''==PROF== Connected to process 1
+"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size","Device","CC","Section Name","Metric Name","Metric Unit","Metric Value"
+"0","1","python3","h","void cuda_backend::for_each_kernel<pbf::DensityLambda<pbf::UniformPolicy>>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","1,000"
+"1","1","python3","h","void cuda_backend::for_each_kernel<pbf::DensityLambda<pbf::UniformPolicy>>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","3,000"
+"2","1","python3","h","void cuda_backend::for_each_kernel<cuda_backend::Predict>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","usecond","1"
+"3","1","python3","h","void cub::detail::radix_sort::DeviceRadixSortOnesweepKernel<int>(int)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","1000"
+'''
+
+
+def test_kernels_are_summed_by_name_and_units(tmp_path):
+    path = tmp_path / "ncu.csv"
+    path.write_text(NCU)
+    t = profile_step.table(str(path), "growing", 1000, "abc").set_index("kernel")
+    assert t.loc["DensityLambda", "launches"] == 2 and t.loc["DensityLambda", "us"] == pytest.approx(4.0)
+    assert t.loc["Predict", "us"] == pytest.approx(1.0)
+    assert t.loc["Thrust/CUB DeviceRadixSortOnesweepKernel", "us"] == pytest.approx(1.0)
+    assert t["share"].sum() == pytest.approx(1.0, abs=1e-3)
+    assert (t["commit"] == "abc").all()
