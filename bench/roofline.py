@@ -80,8 +80,8 @@ def copy_bandwidth(backend: str, nbytes: int = 1 << 30, repeats: int = 20) -> fl
     src = np.ones(nbytes // 8, dtype=np.float64)
     dst = np.empty_like(src)
     threads = os.cpu_count() or 1
-    chunks = np.array_split(np.arange(src.size), threads)
-    bounds = [(c[0], c[-1] + 1) for c in chunks if c.size]
+    edges = np.linspace(0, src.size, threads + 1).astype(int)
+    bounds = [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
     def copy(b):
         np.copyto(dst[b[0]:b[1]], src[b[0]:b[1]])

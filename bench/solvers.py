@@ -160,14 +160,10 @@ class ParticleAdapter(SolverAdapter):
         its temporary storage is cached, so after the run this is its peak."""
         if ParticleAdapter.resolve_backend(spec.backend) != "cuda":
             return None
-        from pbf_cuda.kernels import _core
-        info = getattr(_core(), "cuda_memory_info", None)
-        if info is None:
-            return None
         import gc
+        from pbf_cuda.memory import cuda_memory_in_use
         gc.collect()                   # a previous run's arrays are freed now, not during this run
-        free, total = info()
-        return int(total - free) if total else None
+        return cuda_memory_in_use()
 
     @staticmethod
     def check(sim, spec, row: dict | None) -> None:

@@ -17,7 +17,8 @@ from pathlib import Path
 
 from .scene import Scene, SceneError
 
-__all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memory", "solver_bytes_per_slot"]
+__all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memory", "solver_bytes_per_slot",
+           "cuda_memory_in_use"]
 
 FLOAT4, FLOAT, UINT = 16, 4, 4
 SORT_SCRATCH_BYTES = 8           # the radix sort's second key and value buffers (uint32 each)
@@ -148,16 +149,32 @@ def _cgroup_available() -> int | None:
         return None
 
 
+def cuda_memory_info() -> tuple[int, int] | None:
+    """(free, total) bytes of CUDA device 0 (cudaMemGetInfo; (0, 0) without a device), or None when the
+    compiled module cannot say (built without CUDA)."""
+    try:
+        from . import _core as core
+        info = getattr(core, "cuda_memory_info", None)
+        if info is None:
+            return None
+        free, total = info()
+        return int(free), int(total)
+    except Exception:  # noqa: BLE001  (no device information)
+        return None
+
+
+def cuda_memory_in_use() -> int | None:
+    """Bytes in use on CUDA device 0, the context included (total - free); None without a device."""
+    info = cuda_memory_info()
+    return info[1] - info[0] if info is not None and info[1] else None
+
+
 def available_memory(backend: str = "cpu") -> int | None:
     """Bytes available on `backend`'s device: host memory for 'cpu' (psutil, else sysconf, capped by a
     cgroup limit); for 'cuda' the free device memory when the compiled module reports it, else None."""
     if backend == "cuda":
-        try:
-            from . import _core as core
-            info = getattr(core, "cuda_memory_info", None)
-            return int(info()[0]) if info is not None else None
-        except Exception:  # noqa: BLE001  (no device information: skip the device check)
-            return None
+        info = cuda_memory_info()                 # None: skip the device check
+        return info[0] if info is not None else None
     try:
         import psutil
         host = int(psutil.virtual_memory().available)

@@ -125,16 +125,17 @@ inline void build_neighbor_grid(SolverData& d) {
                                                        raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
 }
 
-// This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their running sum (the row
-// offsets; the host reads the total to size the index array, which only grows), then the candidates.
+// A particle's candidate count, widened so that their sum cannot wrap.
 struct CountAt {
     const uint32_t* count;
     PBF_HD unsigned long long operator()(uint32_t i) const { return count[i]; }
 };
 
-// The lists' offsets are uint32: a step whose candidates number more than 2^32 - 1 (about 120M particles
-// at ~35 candidates each), or whose index array cannot be allocated, gives the lists up for the rest of the
-// run and searches the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their total (read by the
+// host to size the index array, which only grows), their running sum (the row offsets), then the candidates.
+// The offsets are uint32: a step whose candidates number more than 2^32 - 1 (about 120M particles at ~35
+// candidates each), or whose index array cannot be allocated, gives the lists up for the rest of the run and
+// searches the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
 template <class Policy>
 void build_neighbor_lists(SolverData& d) {
     d.lists_ready = false;
