@@ -1,39 +1,58 @@
-"""Probe: the heated ground layer of the CPU cycle, uniform against adaptive particles (docs/cycling.md).
+"""Probe: the heated ground layer of a scene, uniform against adaptive particles (docs/cycling.md, the adaptive
+twin; docs/validation.md, heat input of adaptive runs).
 
-    python scripts/probe_ground_layer.py cycling 0            # uniform, 100 m
-    python scripts/probe_ground_layer.py cycling_adaptive 3   # adaptive, 100 m level 0, max level 3
+    # the CPU cycle of example 2 (bench.studies.cycling.CPU_OVERRIDES), every half model day:
+    python scripts/probe_ground_layer.py cycling --cpu-cycle --every 600 --count 8
+    python scripts/probe_ground_layer.py cycling_adaptive --cpu-cycle --set '{"adaptive.max_level": 3}' --every 600 --count 8
+    # growing in a small box, every 200 s for 1000 s:
+    python scripts/probe_ground_layer.py growing_adaptive --set '{"domain.size": [1200, 1600, 1200], "particles.spacing": 100, "time.dt": 8, "adaptive.criterion": "thermal"}'
 
-Prints, every half model day (600 s; the ground is heated in the first half of each day): the heat the ground gave since the
-last line (stats()["heat_source_total"], mass-weighted mean warming, K), the mass below 100 m as a
-fraction of a full lattice layer, the layer-weighted heated mass (eq. 5's weights) as a fraction of the
-column's, the rest-density-relative mass in 50 m slabs, and the particles below 100 m per level."""
-import sys
+Prints, every --every seconds: the heat the ground gave since the last line (stats()["heat_source_total"],
+mass-weighted mean warming, K), the mass below heating_depth as a fraction of a full lattice layer, the
+heated mass with eq. 5's layer weights (csrc/thermodynamics.h, heated_fraction) as the same fraction, the
+rest-density-relative mass of 50 m slabs, and the particles below heating_depth per level (CPU backend)."""
+import argparse
+import json
 
 import numpy as np
 
 from bench.studies.cycling import CPU_OVERRIDES
 from pbf_cuda import Simulation, load_scene
+from pbf_cuda.initial_state import lattice_mass, lattice_spacings
+from pbf_cuda.scene import SceneError
 
-name, max_level = sys.argv[1], int(sys.argv[2])
-over = dict(CPU_OVERRIDES)
-if max_level:
-    over["adaptive.max_level"] = max_level
-scene = load_scene(name).replace(**over)
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("scene")
+parser.add_argument("--cpu-cycle", action="store_true", help="apply the CPU cycle's overrides first")
+parser.add_argument("--set", default="{}", help="scene overrides as JSON, e.g. '{\"adaptive.max_level\": 3}'")
+parser.add_argument("--every", type=float, default=200.0, help="s between lines")
+parser.add_argument("--count", type=int, default=5, help="lines")
+args = parser.parse_args()
+try:
+    extra = json.loads(args.set)
+except json.JSONDecodeError as exc:
+    parser.error(f"--set: not JSON ({exc})")
+if not isinstance(extra, dict):
+    parser.error("--set: expected a JSON object of dotted scene fields")
+over = {**(CPU_OVERRIDES if args.cpu_cycle else {}), **extra}
+try:
+    scene = load_scene(args.scene).replace(**over)
+except SceneError as exc:
+    parser.error(str(exc))
 sim = Simulation(scene, backend="cpu", seed=0)
 rho0, (lx, _, lz) = scene.particles.rest_density, scene.domain.size
-d0, depth = scene.particles.spacing, scene.atmosphere.heating_depth
-m0 = sim.state()["mass"].max()
-layer = depth * lx * lz * rho0                 # the mass of a full lattice layer below heating_depth
+m0, layer0, depth = lattice_mass(scene), float(lattice_spacings(scene)[1]), scene.atmosphere.heating_depth
+full_layer = depth * lx * lz * rho0              # the mass of a full lattice layer below heating_depth
 previous = 0.0
-for k in range(8):
-    sim.step(round(600.0 / scene.time.dt))                 # half a model day (P = 1200 s)
-    s, st = sim.state(), sim.stats()
+for _ in range(args.count):
+    sim.step(round(args.every / scene.time.dt))
+    s, heat = sim.state(), sim.stats()["heat_source_total"]
     y, m, level = s["position"][:, 1], s["mass"], s["level"].astype(int)
-    d = d0 * np.cbrt(m / m0)
+    d = layer0 * np.cbrt(m / m0)                 # each particle's layer: its level's lattice spacing
     weight = np.clip((depth - (y - 0.5 * d)) / d, 0.0, 1.0)
     slabs = [float(m[(y >= a) & (y < a + 50.0)].sum() / (50.0 * lx * lz * rho0)) for a in (0, 50, 100, 150)]
-    heat = st["heat_source_total"]
-    print(f"t {sim.time:6.0f} s  heat {heat - previous:.3f} K  mass below {depth:.0f} m {m[y < depth].sum() / layer:.2f}"
-          f"  heated mass {np.sum(m * weight) / layer:.2f}  slabs {np.round(slabs, 2).tolist()}"
-          f"  levels below {depth:.0f} m {np.bincount(level[y < depth], minlength=4).tolist()}", flush=True)
+    below = y < depth
+    print(f"t {sim.time:6.0f} s  heat {heat - previous:.3f} K  mass below {depth:.0f} m {m[below].sum() / full_layer:.2f}"
+          f"  heated mass {np.sum(m * weight) / full_layer:.2f}  slabs {np.round(slabs, 2).tolist()}"
+          f"  levels below {depth:.0f} m {np.bincount(level[below], minlength=4).tolist()}", flush=True)
     previous = heat
