@@ -568,3 +568,30 @@ def test_peer_section_gives_the_ratio_per_thread_count(full_report):
     sec = _sections(full_report[1])["peers"]
     assert "cloudpbf / SPlisHSPlasH" in sec and "1.35" in sec       # 5.48e5 / 4.06e5
     assert ">GPU<" in sec                                            # threads 0: the GPU row
+
+
+def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(tmp_path, full_report):
+    """Example 2's renders: the modes that have any render become rows (peak | clearest moment after it) of one
+    figure; a mode with no render is left out, a missing cell is drawn as 'not rendered'."""
+    import base64
+    import io
+    import shutil
+
+    import matplotlib.pyplot as plt
+    out = tmp_path / "study"
+    shutil.copytree(full_report[0] / "data", out / "data")
+    pd.DataFrame({"solver": ["particles", "particles"], "mode": ["non-adaptive", "adaptive"], "seed": [0, 0],
+                  "cycles": [3, 2], "peak_cover": [0.6, 0.4], "min_cover": [0.0, 0.01], "device": DEVICE,
+                  "commit": COMMIT}).to_csv(out / "data" / "cycling_cycles.csv", index=False)
+    before = _sections(build_report(out).read_text())["compare"].count("<img")
+    for name in ("cycling_non-adaptive_peak", "cycling_non-adaptive_min", "cycling_adaptive_peak"):
+        fig, ax = plt.subplots(figsize=(4, 3))
+        ax.imshow(np.random.default_rng(1).random((6, 8)))
+        fig.savefig(out / "data" / "renders" / f"{name}.png")
+        plt.close(fig)
+    compare = _sections(build_report(out).read_text())["compare"]
+    assert compare.count("<img") == before + 1 and "Fig. 5c/d" in compare
+    uri = re.search(r'src="data:image/png;base64,([^"]+)"[^>]*>(?:(?!<img).)*Fig\. 5c/d', compare, re.S).group(1)
+    picture = plt.imread(io.BytesIO(base64.b64decode(uri)))
+    assert picture.shape[0] > 0.5 * picture.shape[1]          # two rows (the grid row is left out)
+    assert picture.shape[0] < 1.0 * picture.shape[1]          # (three rows would be taller than wide)

@@ -780,13 +780,16 @@ def _cycling(inp: Inputs, sec: Section) -> None:
             f"The water budget over each full cycle ({bpath.name}, docs/cycling.md C4), kg: rain removed, "
             "vapor added by the relaxation (negative: removed), the change of the solver's own total water, and "
             "closure = (change - (relaxation - rain)) / mean total water; latent heat released, K (eq. 11)."))
-    pairs = [(f"cycling_{mode}_{tag}", f"Example 2, {mode.replace('-', ' ')} "
-              f"{'at its first cover peak' if tag == 'peak' else 'at the clearest moment after that peak'} "
-              "(seed 0; bench.studies.cycling.cycle_states)")
-             for mode in ("non-adaptive", "adaptive", "grid") for tag in ("peak", "min")]
-    present = [(name, caption) for name, caption in pairs if inp.render(name)[0] is not None]
-    if present:
-        _render_blocks(inp, sec, present)
+    modes, tags = ("non-adaptive", "adaptive", "grid"), ("peak", "min")
+    grid = [[inp.render(f"cycling_{mode}_{tag}")[0] for tag in tags] for mode in modes]
+    shown = [(mode, row) for mode, row in zip(modes, grid) if any(p is not None for p in row)]
+    if shown:
+        sec.add("image", plots.image_grid([row for _, row in shown], [mode for mode, _ in shown],
+                                          ["first cover peak", "clearest moment after that peak"]), caption=(
+            "Example 2 in the style of the paper's Fig. 5c/d: each solver's seed-0 run at its first cover "
+            "peak (left) and at the clearest moment that follows (right), side by side "
+            "(bench.studies.cycling.cycle_states; the times are those of the water-budget table). Particles "
+            "with w > 1e-5 kg/kg are drawn, the grid's cloud water as a volume."))
 
 
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:

@@ -60,6 +60,32 @@ def png_file_uri(path) -> str:
         return "data:image/png;base64," + base64.b64encode(fh.read()).decode("ascii")
 
 
+def image_grid(paths, row_labels: Sequence[str], col_labels: Sequence[str], width_in: float = 11.0) -> str:
+    """Renders (PNG files) side by side: ``paths[r][c]`` in row r, column c (None leaves the cell empty),
+    one figure with the row and column labels, so that e.g. a peak and the minimum after it of several
+    solvers are read in one look."""
+    rows, cols = len(paths), len(paths[0])
+    first = next(p for row in paths for p in row if p is not None)
+    h, w = plt.imread(first).shape[:2]
+    fig, axes = plt.subplots(rows, cols, figsize=(width_in, width_in * rows * h / (cols * w) + 0.4 * rows),
+                             squeeze=False)
+    for r, row in enumerate(paths):
+        for c, path in enumerate(row):
+            ax = axes[r][c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if path is not None:
+                ax.imshow(plt.imread(path))
+            else:
+                ax.text(0.5, 0.5, "not rendered", ha="center", va="center", transform=ax.transAxes)
+            if r == 0:
+                ax.set_title(col_labels[c], fontsize=10)
+            if c == 0:
+                ax.set_ylabel(row_labels[r], fontsize=10)
+    fig.tight_layout()
+    return to_data_uri(fig)
+
+
 def _color(solver: str, mode: str, fallback_index: int = 0) -> str:
     return SERIES_STYLE.get((solver, mode), f"C{fallback_index % 10}")
 
