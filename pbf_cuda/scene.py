@@ -134,6 +134,10 @@ class PBF:
                                       "the fluid's net vertical momentum after the projection (incompressible air there has "
                                       "none; a few CG iterations do not stop a drift of the whole column, which rarefies "
                                       "heated air: README, Physics and numerics, Column drift)")
+    remove_shift_drift: bool = _spec(False, doc="velocity projection in a box closed at the floor and the lid: remove "
+                                     "the density solve's net vertical shift of the fluid after its iterations (the "
+                                     "same rigid mode as the column drift, reached through positions: README, Physics "
+                                     "and numerics, Column drift)")
     shift_keeps_anomaly: bool = _spec(False, doc="velocity projection with an atmosphere: the density constraint's "
                                       "vertical shift of a particle moves its temperature along the environment's lapse "
                                       "rate, not the dry adiabat")

@@ -10,7 +10,7 @@ twin; docs/validation.md, heat input of adaptive runs).
 Prints, every --every seconds: the heat the ground gave since the last line (stats()["heat_source_total"],
 mass-weighted mean warming, K), the mass below heating_depth as a fraction of a full lattice layer, the
 heated mass with eq. 5's layer weights (csrc/thermodynamics.h, heated_fraction) as the same fraction, the
-rest-density-relative mass of 50 m slabs, and the particles below heating_depth per level (CPU backend)."""
+rest-density-relative mass of 50 m slabs, and the particles below heating_depth per level."""
 import argparse
 import json
 
@@ -27,6 +27,7 @@ parser.add_argument("--cpu-cycle", action="store_true", help="apply the CPU cycl
 parser.add_argument("--set", default="{}", help="scene overrides as JSON, e.g. '{\"adaptive.max_level\": 3}'")
 parser.add_argument("--every", type=float, default=200.0, help="s between lines")
 parser.add_argument("--count", type=int, default=5, help="lines")
+parser.add_argument("--backend", default="cpu", help="cpu (default) or cuda")
 args = parser.parse_args()
 try:
     extra = json.loads(args.set)
@@ -39,7 +40,7 @@ try:
     scene = load_scene(args.scene).replace(**over)
 except SceneError as exc:
     parser.error(str(exc))
-sim = Simulation(scene, backend="cpu", seed=0)
+sim = Simulation(scene, backend=args.backend, seed=0)
 rho0, (lx, _, lz) = scene.particles.rest_density, scene.domain.size
 m0, layer0, depth = lattice_mass(scene), float(lattice_spacings(scene)[1]), scene.atmosphere.heating_depth
 full_layer = depth * lx * lz * rho0              # the mass of a full lattice layer below heating_depth

@@ -184,6 +184,8 @@ def cover_series(kind, seconds=2400.0, every=5):
     at every sample too (the grid's budget test: one compilation for both)."""
     scene = load_scene("cycling").replace(**CPU_OVERRIDES)
     shape, _ = grid_for_scene(scene)
+    if kind == "adaptive":
+        scene = load_scene("cycling_adaptive").replace(**CPU_OVERRIDES)   # the deposit grid stays the base one's
     steps = int(seconds / scene.time.dt)
     out = []
     if kind == "grid":
@@ -208,7 +210,7 @@ def cover_series(kind, seconds=2400.0, every=5):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["particles", "grid"])
+@pytest.mark.parametrize("kind", ["particles", "adaptive", "grid"])
 def test_clouds_disappear_and_reappear_at_cpu_scale(kind):
     cover = cover_series(kind)
     counted = count_cycles(cover)

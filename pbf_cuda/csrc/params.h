@@ -39,6 +39,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, lambda_ref, "", 1.0f)                         /* lambda of a unit violation, kg m^2 (scales s_corr) */\
     S(bool, unilateral, "pbf.unilateral", true)            /* C_i = max(rho_i / rho0 - 1, 0) */                    \
     S(bool, remove_column_drift, "pbf.remove_column_drift", true) /* velocity projection: sum m u_y = 0 */      \
+    S(bool, remove_shift_drift, "pbf.remove_shift_drift", false) /* density solve: sum m dy = 0 (closed column) */\
     S(bool, shift_keeps_anomaly, "pbf.shift_keeps_anomaly", false) /* density shift dT = -Gamma_env dy */         \
     S(float, scorr_k, "pbf.scorr_k", 0.01f)                /* tensile term strength relative to lambda_ref */      \
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \

@@ -400,6 +400,19 @@ struct Double2Add {
     PBF_HD Double2 operator()(const Double2& a, const Double2& b) const { return Double2{a.x + b.x, a.y + b.y}; }
 };
 
+// y -= shift, kept inside the floor and the lid (the density solve's share of the column drift), m.
+struct RemoveVerticalShift {
+    Float4* pos;
+    float shift;
+    float top;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 x = pos[i];
+        float y = x.y - shift;
+        y = y < 0.0f ? 0.0f : (y > top ? top : y);
+        pos[i] = Float4{x.x, y, x.z, x.w};
+    }
+};
+
 // (sum m u_y, sum m) of the fluid particles, kg m/s and kg.
 struct VerticalMomentum {
     const Float4* pos;   // .w: mass, kg

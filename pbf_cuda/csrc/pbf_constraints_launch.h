@@ -161,11 +161,21 @@ template <class Policy>
 void solve_density(SolverData& d, const CellRanges& walls) {
     const bool keep_shift = !d.shift_y.empty();
     if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
+    // pbf.remove_shift_drift: the solve's net vertical shift sum m dy / sum m is the closed column's rigid mode
+    // (as the column drift is for velocities; README, Shift drift), subtracted from every particle afterwards.
+    const bool closed_column = d.p.velocity_projection && d.p.remove_shift_drift && !d.p.periodic[1] && d.n > 0;
+    const Double2 before = closed_column ? reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)},
+                                                       Double2{0.0, 0.0}, Double2Add{}) : Double2{0.0, 0.0};
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
         parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
+    }
+    if (closed_column && before.y > 0.0) {
+        const Double2 after = reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0},
+                                          Double2Add{});
+        parallel_for(d.n, RemoveVerticalShift{raw(d.pred), float((after.x - before.x) / before.y), d.grid.domain[1]});
     }
     d.shift_my = keep_shift ? reduce_over(d.n, VerticalShift{raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>())
                             : 0.0;
