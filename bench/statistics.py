@@ -315,6 +315,23 @@ def grid_for_scene(scene, resolution=None) -> tuple[tuple[int, int, int], np.nda
     return shape, size / np.array(shape, dtype=np.float64)
 
 
+def heated_mass_fraction(state: Mapping[str, np.ndarray], scene) -> float:
+    """The mass the ground heats (eq. 5) over rho0 times the volume below heating_depth H (dimensionless).
+    As the solver does (csrc/thermodynamics.h, heated_fraction), a particle of mass m stands for the slab of
+    its level's lattice spacing d = d_0 (m / m_0)^(1/3) centred on its height y, and counts by the part of
+    that slab below H: min(1, max(0, (H - y + d / 2) / d)).  A lattice at rest reads m_0 / (rho0 d_x d_y d_z)
+    at any spacing and H (0.990 at 100 m in `growing`: the lattice mass is set so that the SPH density is
+    rho0)."""
+    from pbf_cuda.initial_state import lattice_mass, lattice_spacings
+    y = np.asarray(state["position"], dtype=np.float64)[:, 1]
+    m = np.asarray(state["mass"], dtype=np.float64)
+    depth = float(scene.atmosphere.heating_depth)
+    d = float(lattice_spacings(scene)[1]) * np.cbrt(m / lattice_mass(scene))
+    weight = np.clip((depth - (y - 0.5 * d)) / d, 0.0, 1.0)
+    lx, _, lz = scene.domain.size
+    return float(np.sum(m * weight) / (depth * lx * lz * scene.particles.rest_density))
+
+
 def deposit_state(state: Mapping[str, np.ndarray], scene, resolution=None,
                   fields: Iterable[str] = ("temperature", "vapor", "cloud")) -> dict:
     """Deposit a ``Simulation.state()`` dict on the scene's grid (see :func:`grid_for_scene`).

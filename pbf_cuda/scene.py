@@ -136,8 +136,8 @@ class PBF:
                                       "heated air: README, Physics and numerics, Column drift)")
     remove_shift_drift: bool = _spec(False, doc="velocity projection in a box closed at the floor and the lid: remove "
                                      "the density solve's net vertical shift of the fluid after its iterations (the "
-                                     "same rigid mode as the column drift, reached through positions: README, Physics "
-                                     "and numerics, Column drift)")
+                                     "same rigid mode as the column drift, reached through positions; off by default, "
+                                     "README, Physics and numerics, Shift drift)")
     shift_keeps_anomaly: bool = _spec(False, doc="velocity projection with an atmosphere: the density constraint's "
                                       "vertical shift of a particle moves its temperature along the environment's lapse "
                                       "rate, not the dry adiabat")

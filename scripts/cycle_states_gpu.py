@@ -4,9 +4,11 @@
     python -c "from bench.studies.cycling import render_cycle_states; render_cycle_states('OUT_DIR', 'reports/gpu/data/renders')"
 
 Runs the seed-0 specs of `cloudpbf cycling --scale gpu` again (the same scenes; seed 0 keeps every diagnostic
-state; MODE limits it to some of non-adaptive, adaptive, grid) on local dask workers, then writes cycle_<mode>_<peak|min>.npz at the first cycle's peak and
-clearest moment of the committed reports/gpu/data/cycling_cycles.csv and cycling_budgets.csv
-(bench.studies.cycling.cycle_states).  Rendering needs pyvista, which the GPU machine may lack."""
+state; MODE limits it to some of non-adaptive, adaptive, grid) one after another in this process, then writes
+cycle_<mode>_<peak|min>.npz at the first cycle's peak and clearest moment of the committed
+reports/gpu/data/cycling_cycles.csv and cycling_budgets.csv (bench.studies.cycling.cycle_states).
+CLOUDPBF_STATES_SCALE=cpu runs the CPU scale's specs on the CPU instead (to try the script without a GPU; the
+committed times are the GPU study's).  Rendering needs pyvista, which the GPU machine may lack."""
 import os
 import sys
 from pathlib import Path

@@ -9,16 +9,16 @@ twin; docs/validation.md, heat input of adaptive runs).
 
 Prints, every --every seconds: the heat the ground gave since the last line (stats()["heat_source_total"],
 mass-weighted mean warming, K), the mass below heating_depth as a fraction of a full lattice layer, the
-heated mass with eq. 5's layer weights (csrc/thermodynamics.h, heated_fraction) as the same fraction, the
+heated mass with eq. 5's layer weights (bench.statistics.heated_mass_fraction) as the same fraction, the
 rest-density-relative mass of 50 m slabs, and the particles below heating_depth per level."""
 import argparse
 import json
 
 import numpy as np
 
+from bench.statistics import heated_mass_fraction
 from bench.studies.cycling import CPU_OVERRIDES
 from pbf_cuda import Simulation, load_scene
-from pbf_cuda.initial_state import lattice_mass, lattice_spacings
 from pbf_cuda.scene import SceneError
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -42,18 +42,16 @@ except SceneError as exc:
     parser.error(str(exc))
 sim = Simulation(scene, backend=args.backend, seed=0)
 rho0, (lx, _, lz) = scene.particles.rest_density, scene.domain.size
-m0, layer0, depth = lattice_mass(scene), float(lattice_spacings(scene)[1]), scene.atmosphere.heating_depth
+depth = scene.atmosphere.heating_depth
 full_layer = depth * lx * lz * rho0              # the mass of a full lattice layer below heating_depth
 previous = 0.0
 for _ in range(args.count):
     sim.step(round(args.every / scene.time.dt))
     s, heat = sim.state(), sim.stats()["heat_source_total"]
     y, m, level = s["position"][:, 1], s["mass"], s["level"].astype(int)
-    d = layer0 * np.cbrt(m / m0)                 # each particle's layer: its level's lattice spacing
-    weight = np.clip((depth - (y - 0.5 * d)) / d, 0.0, 1.0)
     slabs = [float(m[(y >= a) & (y < a + 50.0)].sum() / (50.0 * lx * lz * rho0)) for a in (0, 50, 100, 150)]
     below = y < depth
     print(f"t {sim.time:6.0f} s  heat {heat - previous:.3f} K  mass below {depth:.0f} m {m[below].sum() / full_layer:.2f}"
-          f"  heated mass {np.sum(m * weight) / full_layer:.2f}  slabs {np.round(slabs, 2).tolist()}"
+          f"  heated mass {heated_mass_fraction(s, scene):.2f}  slabs {np.round(slabs, 2).tolist()}"
           f"  levels below {depth:.0f} m {np.bincount(level[below], minlength=4).tolist()}", flush=True)
     previous = heat

@@ -336,3 +336,23 @@ def test_onset_time_and_timeseries_frame(tmp_path):
         save_frame(both, tmp_path / "series.txt")
     with pytest.raises(KeyError, match="cloud_cover"):
         st.onset_time(pd.DataFrame({"time_s": [0.0]}))
+
+
+@pytest.mark.parametrize("spacing, depth", [(45.0, 20.0), (68.0, 100.0), (100.0, 100.0), (100.0, 150.0),
+                                            (137.0, 333.0), (230.0, 400.0)])
+def test_heated_mass_fraction_of_a_lattice_at_rest_is_one(spacing, depth):
+    """Eq. 5's layer weights give a lattice at rest exactly a full heated layer at any spacing, also where
+    heating_depth is below one spacing or falls between two layers (the fraction is then the lattice's own
+    density m_0 / (rho0 d^3)); a lattice lifted by half a spacing holds half a spacing's worth less of it (so
+    the diagnostic sees a column leaving the floor)."""
+    from pbf_cuda import load_scene
+    from pbf_cuda.initial_state import fluid_particles, lattice_mass, lattice_spacings
+    scene = load_scene("growing").replace(**{"domain.size": [1400.0, 1600.0, 1400.0], "particles.spacing": spacing,
+                                             "atmosphere.heating_depth": depth})
+    full = lattice_mass(scene) / (scene.particles.rest_density * float(np.prod(lattice_spacings(scene))))
+    state = fluid_particles(scene)
+    assert st.heated_mass_fraction(state, scene) == pytest.approx(full, rel=1e-5)
+    dy = float(lattice_spacings(scene)[1])
+    lifted = dict(state, position=state["position"] + np.array([0.0, 0.5 * dy, 0.0], dtype=np.float32))
+    assert st.heated_mass_fraction(lifted, scene) == pytest.approx(full * max(0.0, 1.0 - 0.5 * dy / depth), rel=1e-5,
+                                                                   abs=1e-7)
