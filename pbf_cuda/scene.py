@@ -150,6 +150,8 @@ class PBF:
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")
     scorr_n: int = _spec(4, 1, 8, "", "tensile s_corr exponent n")
     scorr_dq: float = _spec(0.2, 0.0, 0.99, "", "tensile s_corr reference distance dq / h")
+    scorr_mixed: float = _spec(1.0, 0.0, 1.0, "", "weight of s_corr between particles of different levels "
+                                                  "(adaptive runs; 0: s_corr acts within a level only)")
     xsph: float = _spec(0.01, 0.0, 1.0, "", "XSPH viscosity c")
     viscosity: float = _spec(0.0, 0.0, 1e6, "m^2/s", "kinematic viscosity nu (pairwise SPH Laplacian, conserves "
                                                      "momentum); explicit: keep nu dt / spacing^2 below 0.1")
@@ -220,6 +222,9 @@ class Adaptive:
                                "'thermal': max(w, (T - T0(y)) / Q), the heat excess over the initial profile as the "
                                "cloud water that would release it, so heated air is refined from the ground up")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
+    coarse_near_walls: bool = _spec(True, doc="particles within one level-0 kernel radius h0 of a wall stay at level 0 "
+                                              "(never split; finer ones merge): the boundary particles sample a wall "
+                                              "at level-0 spacing, which a finer kernel sees as lumps")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
     min_distance: float = _spec(0.35, 0.0, 0.5, "",
                                 "no particle within this times the new particle's kernel radius of it; at most "

@@ -48,6 +48,9 @@ struct AdaptParams {
     float conflict_radius;      // m
     float lookahead_height;     // m; 0: the paper's criterion
     bool refine_warm_air;       // the 'thermal' criterion
+    float wall_band;            // m; particles closer than this to a wall stay at level 0 (0: off)
+    float domain[3];            // m
+    bool wall[3];               // walls at 0 and domain[a] on axis a
 };
 
 // Shape energy (eq. 20) and candidate marks. The refinement criterion decides what water E measures:
@@ -62,6 +65,7 @@ struct AdaptParams {
 // level, on the same scale k_c as the cloud: with the defaults it splits at 0.45 K of excess, merges below 0.06 K.
 // Either way the thermals that build a cloud run at the fine resolution, not only the cloud.
 // Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
+// Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion.
 struct MarkCandidates {
     AdaptParams ap;
     AtmosphereParams atm;
@@ -83,6 +87,13 @@ struct MarkCandidates {
             w = fmaxf(w, excess / atm.latent_heat);
         }
         float e = ap.k_p * (-expm1f(-ap.k_c * w));  // E = k_p (1 - exp(-k_c w)), eq. 20
+        // Next to a wall the boundary particles sit on the level-0 lattice: a finer kernel sees them as lumps and
+        // lets a fine particle slip against the wall, so within h0 of a wall E = 0 (never split, finer ones merge).
+        for (int a = 0; a < 3; ++a) {
+            if (!ap.wall[a]) continue;
+            float x = component(xyz(pos[i]), a);
+            if (x < ap.wall_band || x > ap.domain[a] - ap.wall_band) e = 0.0f;
+        }
         energy[i] = e;
         int l = radii.level_of_mass(pos[i].w);
         uint8_t f = 0;

@@ -53,6 +53,11 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
     ap.lookahead_height = p.thermodynamics ? p.lookahead_height : 0.0f;
     ap.refine_warm_air = p.thermodynamics && p.refine_warm_air;
     ap.h0 = p.h0;
+    ap.wall_band = p.coarse_near_walls ? p.h0 : 0.0f;
+    for (int a = 0; a < 3; ++a) {
+        ap.domain[a] = p.domain[a];
+        ap.wall[a] = !p.periodic[a];
+    }
     for (int l = 0; l < kMaxLevels; ++l) ap.spacing[l] = p.spacing * std::pow(2.0f, -l / 3.0f);
     // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.
     ap.conflict_radius = ap.spacing[1] + p.min_distance * radii.h[1];

@@ -44,6 +44,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, scorr_k, "pbf.scorr_k", 0.01f)                /* tensile term strength relative to lambda_ref */      \
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \
     S(float, scorr_dq, "pbf.scorr_dq", 0.2f)               /* dq / h */                                            \
+    S(float, scorr_mixed, "pbf.scorr_mixed", 1.0f)         /* s_corr weight between particles of different levels */\
     S(bool, velocity_projection, "", false)                /* pbf.projection == "velocity" */                      \
     S(bool, neighbor_list, "pbf.neighbor_list", true)      /* per-step neighbour lists (neighbor_list.h) */        \
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \
@@ -94,6 +95,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, min_distance, "adaptive.min_distance", 0.35f)  /* too-close threshold, times the new radius */        \
     S(float, lookahead_height, "", 0.0f)   /* refinement: 0 = the paper's eq. 20 on w; > 0 = look-ahead rise, m */ \
     S(bool, refine_warm_air, "", false)    /* refinement: also on the heat excess (T - T0(y)) / Q (thermal) */   \
+    S(bool, coarse_near_walls, "adaptive.coarse_near_walls", true) /* level 0 within h0 of a wall */              \
     S(std::size_t, capacity, "", 0)                        /* preallocated particle slots */
 
 struct Params {

@@ -43,6 +43,7 @@ struct ConstraintParams {
     int scorr_n;
     float scorr_inv_wdq;    // 1 / W(dq * h0)
     float scorr_dq;         // dq / h
+    float scorr_mixed;      // s_corr's weight on a pair of different levels (adaptive runs)
 };
 
 // A symmetric 3x3 matrix (the gradient correction L_i), stored as 6 floats per particle.
@@ -289,6 +290,7 @@ struct PositionCorrection {
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
                 s = Policy::tensile_scale(-cp.scorr_k_lambda * p, hi, hj, cp.h0);
+                if (hj != hi) s *= cp.scorr_mixed;
             }
             return li * mj / mi + lambda[j] + s;
         });
