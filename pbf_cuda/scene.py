@@ -150,8 +150,8 @@ class PBF:
     scorr_k: float = _spec(0.01, 0.0, 10.0, "", "tensile s_corr strength k, relative to a unit constraint's lambda")
     scorr_n: int = _spec(4, 1, 8, "", "tensile s_corr exponent n")
     scorr_dq: float = _spec(0.2, 0.0, 0.99, "", "tensile s_corr reference distance dq / h")
-    scorr_mixed: float = _spec(1.0, 0.0, 1.0, "", "weight of s_corr between particles of different levels "
-                                                  "(adaptive runs; 0: s_corr acts within a level only)")
+    scorr_fine: float = _spec(1.0, 0.0, 1.0, "", "weight of s_corr on pairs with a particle finer than level 0 "
+                                                "(adaptive runs; 0: s_corr acts between level-0 particles only)")
     xsph: float = _spec(0.01, 0.0, 1.0, "", "XSPH viscosity c")
     viscosity: float = _spec(0.0, 0.0, 1e6, "m^2/s", "kinematic viscosity nu (pairwise SPH Laplacian, conserves "
                                                      "momentum); explicit: keep nu dt / spacing^2 below 0.1")

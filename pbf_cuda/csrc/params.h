@@ -44,7 +44,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, scorr_k, "pbf.scorr_k", 0.01f)                /* tensile term strength relative to lambda_ref */      \
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \
     S(float, scorr_dq, "pbf.scorr_dq", 0.2f)               /* dq / h */                                            \
-    S(float, scorr_mixed, "pbf.scorr_mixed", 1.0f)         /* s_corr weight between particles of different levels */\
+    S(float, scorr_fine, "pbf.scorr_fine", 1.0f)           /* s_corr weight on pairs with a particle finer than level 0 */\
     S(bool, velocity_projection, "", false)                /* pbf.projection == "velocity" */                      \
     S(bool, neighbor_list, "pbf.neighbor_list", true)      /* per-step neighbour lists (neighbor_list.h) */        \
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \

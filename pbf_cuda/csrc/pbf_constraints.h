@@ -43,7 +43,7 @@ struct ConstraintParams {
     int scorr_n;
     float scorr_inv_wdq;    // 1 / W(dq * h0)
     float scorr_dq;         // dq / h
-    float scorr_mixed;      // s_corr's weight on a pair of different levels (adaptive runs)
+    float scorr_fine;       // s_corr's weight on a pair with a particle finer than level 0 (adaptive runs)
 };
 
 // A symmetric 3x3 matrix (the gradient correction L_i), stored as 6 floats per particle.
@@ -290,7 +290,7 @@ struct PositionCorrection {
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
                 s = Policy::tensile_scale(-cp.scorr_k_lambda * p, hi, hj, cp.h0);
-                if (hj != hi) s *= cp.scorr_mixed;
+                if (hi < cp.h0 || hj < cp.h0) s *= cp.scorr_fine;
             }
             return li * mj / mi + lambda[j] + s;
         });

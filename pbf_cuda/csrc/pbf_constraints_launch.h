@@ -128,7 +128,7 @@ inline ConstraintParams make_constraint_params(const Params& p) {
     float wdq = poly6(p.scorr_dq * p.h0 * p.scorr_dq * p.h0, p.h0);
     cp.scorr_inv_wdq = wdq > 0.0f ? 1.0f / wdq : 0.0f;
     cp.scorr_dq = p.scorr_dq;
-    cp.scorr_mixed = p.scorr_mixed;
+    cp.scorr_fine = p.scorr_fine;
     return cp;
 }
 
