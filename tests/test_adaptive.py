@@ -305,7 +305,8 @@ def test_thermal_criterion_refines_warm_air_and_keeps_it_fine(backend, k_c, alph
     look-ahead criteria nothing). Fine particles with an excess between the merge and split excesses stay fine
     (hysteresis); those at T0(y) merge back."""
     knobs = {"adaptive.k_c": k_c, "adaptive.split_threshold": alpha, "adaptive.merge_threshold": beta,
-             "atmosphere.initial_vapor_ratio": 0.3}
+             "atmosphere.initial_vapor_ratio": 0.3,
+             "adaptive.coarse_near_walls": False}   # the criterion alone (the walls' rule: its own test)
     found = {}
     for criterion in ("paper", "lookahead", "thermal"):
         scene = adaptive_scene(**knobs, **{"adaptive.criterion": criterion})
@@ -349,3 +350,61 @@ def test_thermal_criterion_refines_warm_air_and_keeps_it_fine(backend, k_c, alph
 def test_thermal_criterion_needs_a_latent_heat():
     with pytest.raises(SceneError, match="atmosphere.latent_heat"):
         adaptive_scene(**{"adaptive.criterion": "thermal", "atmosphere.latent_heat": 0.0})
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("spacing", [100.0, 80.0])
+def test_particles_next_to_walls_stay_at_level_0(backend, spacing):
+    """adaptive.coarse_near_walls: in cloud everywhere (every particle wants to split), no particle within one
+    level-0 kernel radius h0 of the floor or the lid is split (children of a parent just outside land at most
+    half a level-1 spacing inside), and fine particles placed there merge, while those in the interior stay
+    fine. With the option off, the wall bands refine like the interior (the control)."""
+    cloudy = lambda x: np.full(len(x), 0.01)
+    found = {}
+    for near_walls in (True, False):
+        scene = adaptive_scene(**{"particles.spacing": spacing, "adaptive.coarse_near_walls": near_walls,
+                                  "atmosphere.buoyancy": 0.0})
+        h0, top = scene.kernel_radius, scene.domain.size[1]
+        band = h0 - 0.5 * spacing * 2.0 ** (-1.0 / 3.0)       # h0 less half a level-1 spacing
+        sim = with_cloud(scene, backend, cloudy)
+        for _ in range(3):
+            sim.adapt()
+        st = sim.state()
+        y = st["position"][:, 1]
+        in_band = (y < band) | (y > top - band)
+        interior = (y > h0) & (y < top - h0)
+        found[near_walls] = (int((st["level"][in_band] > 0).sum()), int((st["level"][interior] > 0).sum()))
+
+        # merging: a mixed-level box in cloud; the band's fine particles merge, the interior's stay fine
+        st = mixed_level_state(scene, backend)
+        st["cloud"] = np.full_like(st["cloud"], 0.01)
+        y = st["position"][:, 1]
+        fine_band = lambda s: int(((s["level"] > 0) & ((s["position"][:, 1] < h0) | (s["position"][:, 1] > top - h0))).sum())
+        sim = Simulation.from_arrays(scene, st, backend=backend)
+        before = fine_band(sim.state())
+        for _ in range(3):
+            sim.adapt()
+        after = fine_band(sim.state())
+        if near_walls:
+            assert after < 0.7 * before, (before, after)
+    assert found[True][0] == 0 and found[True][1] > 0, found
+    assert found[False][0] > 0, found
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_scorr_fine_weights_only_pairs_with_a_fine_particle(backend):
+    """pbf.scorr_fine scales s_corr on pairs with a particle finer than level 0 and nothing else: a box of level-0
+    particles steps bitwise alike for weights 0 and 1, a mixed-level box does not (s_corr acts there), and a
+    mixed-level box with s_corr off steps alike for any weight."""
+    def run(st, scene):
+        sim = Simulation.from_arrays(scene, {k: v.copy() for k, v in st.items()}, backend=backend)
+        sim.step(3)
+        return by_id(sim.state())["position"]
+    knobs = {"adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0, "pbf.scorr_k": 0.1}
+    lattice = Simulation(adaptive_scene(**knobs), backend=backend).state()
+    mixed = mixed_level_state(adaptive_scene(**knobs), backend)
+    same = {}
+    for label, st, k in (("lattice", lattice, 0.1), ("mixed", mixed, 0.1), ("mixed, no s_corr", mixed, 0.0)):
+        a, b = (run(st, adaptive_scene(**{**knobs, "pbf.scorr_k": k, "pbf.scorr_fine": w})) for w in (0.0, 1.0))
+        same[label] = bool(np.array_equal(a, b))
+    assert same == {"lattice": True, "mixed": False, "mixed, no s_corr": True}, same
