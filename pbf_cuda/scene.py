@@ -225,6 +225,8 @@ class Adaptive:
     coarse_near_walls: bool = _spec(True, doc="particles within one level-0 kernel radius h0 of a wall stay at level 0 "
                                               "(never split; finer ones merge): the boundary particles sample a wall "
                                               "at level-0 spacing, which a finer kernel sees as lumps")
+    every: int = _spec(1, 1, 1000, "steps", "split and merge every this many steps (1: every step, as the paper); "
+                                             "between them the levels stay as they are")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")
     min_distance: float = _spec(0.35, 0.0, 0.5, "",
                                 "no particle within this times the new particle's kernel radius of it; at most "

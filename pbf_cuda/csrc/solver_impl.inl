@@ -80,7 +80,7 @@ public:
         d.step += 1;
         d.time += d.p.dt;
         d.lists_ready = false;                       // the lists stay with this step's particles
-        if (d.p.adaptive) adapt(d);                  // merging, splitting, compaction (section 5.2)
+        if (d.p.adaptive && d.step % d.p.adapt_every == 0) adapt(d);   // merging, splitting, compaction (section 5.2)
     }
 
     // -- set-up ------------------------------------------------------------------------------
