@@ -266,17 +266,50 @@ def test_table1_row_is_ms_per_step_without_double_counting():
                              reason=None, path="runs/x", steps_table=lambda: steps)
     spec = SimpleNamespace(total_steps=12, scene=load_scene("growing_adaptive"))
     ctx = SimpleNamespace(commit="abc", scale=SCALES["smoke"])
-    row = table1_row(ROWS[1], spec, result, ctx)
+    example, figure, mode, name = ROWS[1]
+    row = table1_row((example, figure, mode, "", load_scene(name)), spec, result, ctx)
     # the timing's accuracy: the mass centre's rise over the run and the final density excess / deficit
     assert (row["mass_centre_rise_m"], row["density_excess_mean"], row["density_deficit_mean"]) == (2.5, 0.002, 0.004)
     assert list(row)[:len(TABLE1_COLUMNS)] == list(TABLE1_COLUMNS)
     assert (row["pbf_ms"], row["smoothing_ms"], row["cloud_dynamics_ms"]) == (10.0, 2.0, 0.4)
     assert row["splitting_ms"] == 0.5 and row["merging_ms"] is None      # split on 2 of 10 steps; no merge timer
     assert row["total_ms"] == pytest.approx(12.9)                        # neighbors, solver are inside pbf
-    assert (row["example"], row["figure"], row["mode"], row["max_particles"]) == ("growing", "5b", "adaptive", 1234)
+    assert (row["example"], row["figure"], row["mode"], row["variant"], row["max_particles"]) == \
+        ("growing", "5b", "adaptive", "", 1234)
     paper_total = 628.78 + 64.55 + 12.50 + 6.10 + 23.71                  # the paper's row 5b
     assert row["paper_total_ms"] == pytest.approx(paper_total) and row["paper_max_particles"] == 540000
     assert row["speedup_vs_paper"] == pytest.approx(paper_total / 12.9)
+
+
+@pytest.mark.parametrize("best, expected", [
+    (None, None),                                                                        # no verdict file
+    ({"best": None}, None),                                                              # no variant qualified
+    ({"best": {"name": "paper-68m", "criterion": "paper", "spacing_m": 68.0}}, None),    # the 5b row's own setting
+    ({"best": {"name": "thermal-68m", "criterion": "thermal", "spacing_m": 68.0}},
+     ("thermal-68m", {"adaptive.criterion": "thermal", "particles.spacing": 68.0})),
+    ({"best": {"name": "lookahead-54m", "criterion": "lookahead", "spacing_m": 54.0}},
+     ("lookahead-54m", {"adaptive.criterion": "lookahead", "particles.spacing": 54.0})),
+])
+def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, best, expected):
+    """Table 1 keeps the paper's four rows and, when the growing study's verdict names a best variant other
+    than growing_adaptive's own setting, times it in a fifth row (its spacing only at the GPU scale)."""
+    from types import SimpleNamespace
+    from bench.studies.table1 import best_variant, table1_rows
+    if best is not None:
+        (tmp_path / "adaptive_verdict.json").write_text(json.dumps(best))
+    ctx = SimpleNamespace(data=tmp_path, scale=SCALES["gpu"])
+    assert best_variant(ctx) == expected
+    rows = table1_rows(ctx)
+    assert [r[:4] for r in rows[:4]] == [("growing", "5a", "non-adaptive", ""), ("growing", "5b", "adaptive", ""),
+                                         ("cycling", "5c", "non-adaptive", ""), ("cycling", "5d", "adaptive", "")]
+    if expected is None:
+        assert len(rows) == 4
+    else:
+        assert len(rows) == 5 and rows[4][:4] == ("growing", "5b", "adaptive", expected[0])
+        assert rows[4][4].adaptive.criterion == expected[1]["adaptive.criterion"]
+        assert rows[4][4].particles.spacing == expected[1]["particles.spacing"]
+        smoke = SimpleNamespace(data=tmp_path, scale=SCALES["smoke"])   # below the GPU scale: the criterion only
+        assert best_variant(smoke)[1] == {"adaptive.criterion": expected[1]["adaptive.criterion"]}
 
 
 def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):

@@ -595,3 +595,19 @@ def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(t
     picture = plt.imread(io.BytesIO(base64.b64decode(uri)))
     assert picture.shape[0] > 0.5 * picture.shape[1]          # two rows (the grid row is left out)
     assert picture.shape[0] < 1.0 * picture.shape[1]          # (three rows would be taller than wide)
+
+
+def test_table1_shows_the_best_variant_row_beside_the_paper_rows(tmp_path):
+    """A fifth Table 1 row (the adaptive study's best variant) is drawn as 'adaptive (name)', compared with the
+    paper's adaptive row and its example's non-adaptive row, and leaves the paper rows' speed-ups alone."""
+    from bench.report.build import _adaptive_speedups
+    rows = pd.DataFrame({"example": ["growing"] * 3, "mode": ["non-adaptive", "adaptive", "adaptive"],
+                         "variant": ["", "", "thermal-68m"], "total_ms": [8.0, 4.0, 5.0]})
+    assert _adaptive_speedups(rows) == {"growing": 2.0}
+    data = tmp_path / "data"
+    data.mkdir()
+    rows.assign(figure=["5a", "5b", "5b"], max_particles=[830584, 176488, 140000], pbf_ms=[7.0, 3.0, 4.0],
+                device=DEVICE, commit=COMMIT).to_csv(data / "table1.csv", index=False)
+    html = build_report(tmp_path).read_text()
+    table1 = _sections(html)["table1"]
+    assert "adaptive (thermal-68m)" in table1 and f"{8.0 / 5.0:.4g}" in table1 and f"{2.0:.4g}" in table1

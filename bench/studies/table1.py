@@ -15,10 +15,17 @@ OUT/data/table1.csv (columns TABLE1_COLUMNS, then backend, scale, steps, initial
 stable, reason, paper_max_particles, paper_total_ms, speedup_vs_paper = paper_total_ms / total_ms
 (the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv), run_dir), and what the timing was bought
 with: mass_centre_rise_m, density_excess_mean, density_deficit_mean (:func:`incompressibility`).
+
+Beside the paper's rows: when OUT/data/adaptive_verdict.json (``cloudpbf adaptive-pareto --scene growing``)
+names a best adaptive variant that is not the scene's own setting, a fifth row times ``growing_adaptive``
+with that variant's criterion (and, at the GPU scale, its level-0 spacing); its ``variant`` column holds the
+variant's name (empty on the paper's rows) and its paper columns are those of the paper's adaptive row.
 """
 from __future__ import annotations
 
 from pathlib import Path
+
+import json
 
 import pandas as pd
 import typer
@@ -38,8 +45,8 @@ ROWS = (  # example, figure, mode, scene
     ("cycling", "5d", "adaptive", "cycling_adaptive"),
 )
 PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
-TABLE1_COLUMNS = ("example", "figure", "mode", "max_particles", *(f"{p}_ms" for p in PHASES), "total_ms",
-                  "device", "commit")
+TABLE1_COLUMNS = ("example", "figure", "mode", "variant", "max_particles", *(f"{p}_ms" for p in PHASES),
+                  "total_ms", "device", "commit")
 PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
 
 
@@ -54,11 +61,40 @@ def paper_rows() -> dict[tuple[str, str], dict]:
     return {(r["example"], r["mode"]): r for r in paper.to_dict("records")}
 
 
-def table1_specs(ctx: StudyContext) -> list[runs.RunSpec]:
+def best_variant(ctx: StudyContext) -> tuple[str, dict] | None:
+    """(name, scene overrides) of the growing study's best adaptive variant (adaptive_verdict.json in OUT/data),
+    or None: no verdict, no best variant, or the best is the scene's own setting (the 5b row already)."""
+    path = ctx.data / "adaptive_verdict.json"
+    try:
+        best = json.loads(path.read_text()).get("best") or {}
+    except (OSError, ValueError):
+        return None
+    criterion, spacing = best.get("criterion"), best.get("spacing_m")
+    if not best.get("name") or not criterion:
+        return None
+    base = load_scene("growing_adaptive")
+    over = {"adaptive.criterion": criterion}
+    if ctx.scale.particles is None and spacing:          # the study's spacings are those of the GPU scale
+        over["particles.spacing"] = float(spacing)
+    if base.replace(**over) == base:
+        return None
+    return str(best["name"]), over
+
+
+def table1_rows(ctx: StudyContext) -> list[tuple]:
+    """(example, figure, mode, variant, scene) of every row: the paper's four, then the best variant's."""
+    rows = [(example, figure, mode, "", load_scene(name)) for example, figure, mode, name in ROWS]
+    best = best_variant(ctx)
+    if best is not None:
+        rows.append(("growing", "5b", "adaptive", best[0], load_scene("growing_adaptive").replace(**best[1])))
+    return rows
+
+
+def table1_specs(ctx: StudyContext, rows: list[tuple]) -> list[runs.RunSpec]:
     """One timing run per row: the scaled scene, its own seed, no diagnostics, the final state kept."""
     specs = []
-    for _, _, _, name in ROWS:
-        scene = scale_scene(load_scene(name), ctx.scale.particles, ctx.scale.step_fraction)
+    for *_, base in rows:
+        scene = scale_scene(base, ctx.scale.particles, ctx.scale.step_fraction)
         cap = max(10, int(round(CPU_TIMING_STEPS * ctx.scale.step_fraction)))
         if ctx.scale.particles is not None and scene.time.steps > cap:   # below the GPU scale: per-step timings
             scene = scene.replace(**{"time.steps": cap})                 # need no 4200 s cycling run
@@ -84,10 +120,11 @@ def incompressibility(result: runs.RunResult) -> dict:
 
 
 def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: StudyContext) -> dict:
-    example, figure, mode, _ = meta
+    example, figure, mode, variant, _ = meta
     timings = result.timings()
     steps = timings["pbf"]["count"] if "pbf" in timings else 0     # pbf runs every step: the timed steps
-    row = {"example": example, "figure": figure, "mode": mode, "max_particles": result.max_particles}
+    row = {"example": example, "figure": figure, "mode": mode, "variant": variant,
+           "max_particles": result.max_particles}
     for phase in PHASES:   # ms per step: a phase that ran on some steps only is averaged over all of them
         row[f"{phase}_ms"] = timings[phase]["total_ms"] / steps if phase in timings and steps else None
     ran = [row[f"{p}_ms"] for p in PHASES if row[f"{p}_ms"] is not None]
@@ -104,10 +141,11 @@ def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: Stu
 
 
 def run_table1(ctx: StudyContext) -> pd.DataFrame:
-    """Run (or read from the cache) the four rows and write OUT/data/table1.csv."""
-    specs = table1_specs(ctx)
+    """Run (or read from the cache) the rows and write OUT/data/table1.csv."""
+    rows = table1_rows(ctx)
+    specs = table1_specs(ctx, rows)
     results = ctx.run_serial(specs, "table1")
-    frame = pd.DataFrame([table1_row(meta, spec, res, ctx) for meta, spec, res in zip(ROWS, specs, results)])
+    frame = pd.DataFrame([table1_row(meta, spec, res, ctx) for meta, spec, res in zip(rows, specs, results)])
     runs.write_csv(frame, ctx.data / "table1.csv")
     return frame
 
@@ -118,7 +156,7 @@ def table1_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
     with study_context(out, runs_root, scale, backend, None, None, quiet) as ctx:
         with refusals():
             frame = run_table1(ctx)
-    shown = ["example", "mode", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
+    shown = ["example", "mode", "variant", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
              "merging_ms", "total_ms", "paper_max_particles", "paper_total_ms", "speedup_vs_paper", "stable"]
     typer.echo(frame[shown].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     typer.echo(f"device: {frame['device'].iloc[0]}; scale: {ctx.scale.environment_label}; "
