@@ -387,3 +387,27 @@ def test_sweep_cloud_means_and_the_convergence_plot():
                           "cloud_base_mean": [600.0] * 6, "cloud_top_mean": [1500.0] * 6})
     assert plots.convergence_plot(sweep).startswith("data:image/png;base64,")
     assert plots.convergence_plot(sweep.drop(columns=["resolution_m"])) is None
+
+
+def test_studies_run_inline_without_dask_and_say_so(tmp_path, monkeypatch):
+    """Without dask's distributed a study runs its specs in this process (and says so) unless a cluster was
+    asked for; an asked-for cluster is refused with the missing package named, at exit code 2 on the CLI."""
+    pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
+    from bench.cli_common import refusals
+    from bench.studies import context as context_module
+    from bench.studies.context import SchedulerError
+    monkeypatch.setattr(context_module, "has_distributed", lambda: False)
+    scene = scale_scene(load_scene("growing"), 3000).replace(**{"time.steps": 2, "time.snapshot_every": 2})
+    ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", quiet=True)
+    assert ctx.runs_inline() and "distributed is not installed" in ctx.cluster_description()
+    result, = ctx.run_parallel([runs.RunSpec("particles", scene, backend="cpu", seed=0)], "test")
+    assert result.stable and result.step == 2 and ctx._client is None
+    asked = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", quiet=True,
+                         scheduler="tcp://127.0.0.1:8786")
+    assert not asked.runs_inline()
+    with pytest.raises(SchedulerError, match="distributed"):
+        asked.client()
+    import click
+    with pytest.raises(click.exceptions.BadParameter, match="pip install distributed"):
+        with refusals():
+            asked.client()

@@ -17,6 +17,7 @@ otherwise the command ends with exit code 2 naming ``--gpus``.
 """
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import re
@@ -35,6 +36,11 @@ __all__ = ["StudyContext", "StudyError", "GpuError", "INLINE", "parse_gpus", "se
            "cuda_cluster"]
 
 INLINE = "inline"
+
+
+def has_distributed() -> bool:
+    """Whether dask's distributed (the local and remote clusters) is installed."""
+    return importlib.util.find_spec("distributed") is not None
 
 
 class StudyError(RuntimeError):
@@ -253,7 +259,7 @@ class StudyContext:
     def _execute(self, specs: dict, label: str):
         """Yield (key, summary dict or the exception) for every spec, as each finishes."""
         root = str(self.runs_root)
-        if self.scheduler == INLINE:
+        if self.runs_inline():
             for key, spec in specs.items():
                 try:
                     yield key, runs.execute_summary(spec, root)
@@ -305,9 +311,15 @@ class StudyContext:
             return [v.strip() for v in visible.split(",") if v.strip()]
         return [str(i) for i in range(max(1, environment.gpu_count()))]
 
+    def runs_inline(self) -> bool:
+        """Runs in this process: --scheduler inline, or no dask installed and no cluster asked for."""
+        return self.scheduler == INLINE or (self.scheduler is None and self.gpus is None and not has_distributed())
+
     def cluster_description(self) -> str:
         if self.scheduler == INLINE:
             return "this process (inline, no dask)"
+        if self.runs_inline():
+            return "this process (inline: dask's distributed is not installed)"
         if self.scheduler:
             return f"the dask scheduler at {self.scheduler}"
         if self.gpus is not None:
@@ -320,6 +332,10 @@ class StudyContext:
 
     def client(self):
         if self._client is None:
+            if not has_distributed():
+                raise SchedulerError("a dask cluster (--scheduler ADDRESS, --gpus or --workers) needs dask's distributed, "
+                                 "which is not installed (a dependency of cloudpbf: pip install distributed), or run "
+                                 "with --scheduler inline")
             from distributed import Client
             if self.scheduler:
                 # dask moves pickles between the client, the scheduler and the workers: a remote
