@@ -333,7 +333,7 @@ class StudyContext:
     def client(self):
         if self._client is None:
             if not has_distributed():
-                raise SchedulerError("a dask cluster (--scheduler ADDRESS, --gpus or --workers) needs dask's distributed, "
+                raise SchedulerError("a dask cluster (--scheduler ADDRESS or --gpus) needs dask's distributed, "
                                  "which is not installed (a dependency of cloudpbf: pip install distributed), or run "
                                  "with --scheduler inline")
             from distributed import Client
