@@ -419,16 +419,23 @@ def _variant(r) -> str:
     return v if isinstance(v, str) else ""
 
 
+def _non_adaptive_totals(df: pd.DataFrame) -> dict:
+    """example -> total ms of its non-adaptive row."""
+    rows = df[df["mode"] == "non-adaptive"]
+    return dict(zip(rows["example"], pd.to_numeric(rows["total_ms"], errors="coerce")))
+
+
 def _adaptive_speedups(df: pd.DataFrame) -> dict:
     """example -> non-adaptive total / adaptive total, over the paper's rows (no variant)."""
-    out = {}
     if "variant" in df.columns:
         df = df[df["variant"].fillna("").astype(str) == ""]
-    for example, g in df.groupby("example"):
-        modes = dict(zip(g["mode"], pd.to_numeric(g["total_ms"], errors="coerce")))
-        if "adaptive" in modes and "non-adaptive" in modes and modes["adaptive"] > 0:
-            out[example] = modes["non-adaptive"] / modes["adaptive"]
-    return out
+    non_adaptive = _non_adaptive_totals(df)
+    out = {}
+    for r in df[df["mode"] == "adaptive"].itertuples():
+        total = pd.to_numeric(r.total_ms, errors="coerce")
+        if r.example in non_adaptive and total > 0:
+            out[r.example] = non_adaptive[r.example] / total
+    return dict(sorted(out.items()))
 
 
 def _measured_total(df: pd.DataFrame) -> pd.Series:
@@ -448,7 +455,7 @@ def _table1(inp: Inputs, sec: Section, env: dict | None) -> None:
     paper = _paper_table()
     scale = _scale_of(env, measured)
     merged = measured.merge(paper, on=["example", "mode"], how="left", suffixes=("", "_paper"))
-    speed_m = _adaptive_speedups(measured)
+    non_adaptive = _non_adaptive_totals(measured)
     speed_p = _adaptive_speedups(paper)
     rows = []
     for r in merged.itertuples(index=False):
@@ -465,13 +472,9 @@ def _table1(inp: Inputs, sec: Section, env: dict | None) -> None:
         row["total ms (paper)"] = r.get("total_ms_paper")
         total_p = r.get("total_ms_paper")
         row["paper / measured"] = (total_p / r["total_ms"]) if total_p and r["total_ms"] else math.nan
-        if r["mode"] == "adaptive" and variant:     # the best variant's row: against the same non-adaptive row
-            non_adaptive = measured[(measured["example"] == r["example"]) & (measured["mode"] == "non-adaptive")]
-            total_n = float(non_adaptive["total_ms"].iloc[0]) if len(non_adaptive) else math.nan
-            row["adaptive speedup"] = total_n / r["total_ms"] if r["total_ms"] else math.nan
-            row["adaptive speedup (paper)"] = speed_p.get(r["example"], math.nan)
-        elif r["mode"] == "adaptive":
-            row["adaptive speedup"] = speed_m.get(r["example"], math.nan)
+        if r["mode"] == "adaptive":   # a paper row or the best variant's: against the example's non-adaptive row
+            row["adaptive speedup"] = (non_adaptive.get(r["example"], math.nan) / r["total_ms"]
+                                       if r["total_ms"] and r["total_ms"] > 0 else math.nan)
             row["adaptive speedup (paper)"] = speed_p.get(r["example"], math.nan)
         else:
             row["adaptive speedup"] = math.nan

@@ -23,9 +23,8 @@ variant's name (empty on the paper's rows) and its paper columns are those of th
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import json
+from pathlib import Path
 
 import pandas as pd
 import typer
