@@ -94,6 +94,35 @@ def test_render_configs_pick_the_best_variant_and_its_uniform_twins():
     # without a scored variant: the adaptive run of lowest error; level 3 of 68 m is 34 m
     assert ap.render_configs(per_config, {"best": None}) == ["thermal-68m", "uniform-68m", "uniform-34m"]
     assert ap.render_configs(per_config[per_config.kind == "uniform"], {}) == []
+    # a deeper variant's finest spacing: level 0 108 m (nearest uniform 68 m), level 6 27 m (34 m; level 3 would be 54 m)
+    deep = pd.concat([per_config, pd.DataFrame({"config": ["thermal-108m-L6"], "kind": ["adaptive"],
+                                                "spacing_m": [108.0], "error": [0.05]})], ignore_index=True)
+    deep["max_level"] = np.where(deep.kind == "adaptive", 3, 0)
+    deep.loc[deep.config == "thermal-108m-L6", "max_level"] = 6
+    assert ap.render_configs(deep, {"best": {"name": "thermal-108m-L6"}}) == [
+        "thermal-108m-L6", "uniform-68m", "uniform-34m"]
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu"])   # (a "gpu" id would mark it a GPU test)
+def test_every_variant_runs_the_scene_it_names(scale):
+    """Each adaptive configuration's scene carries its criterion, finest level and scaled eq. 20 thresholds;
+    names are unique, and uniform and reference runs are the plain scene at their spacing."""
+    configs = ap.configs(scale)
+    assert len({c.name for c in configs}) == len(configs)
+    f = ap.SPACING_FACTOR[scale]
+    for config in configs:
+        scene = ap.scene_for(config, "cumulus", 1.0)
+        assert scene.particles.spacing == pytest.approx(config.spacing_m)
+        assert scene.adaptive.enabled == (config.kind == "adaptive")
+        if config.kind != "adaptive":
+            continue
+        base = ap.load_scene("cumulus_adaptive").adaptive
+        assert (scene.adaptive.criterion, scene.adaptive.max_level) == (config.criterion, config.max_level)
+        assert scene.adaptive.split_threshold == pytest.approx(base.split_threshold * config.threshold_scale)
+        assert scene.adaptive.merge_threshold == pytest.approx(base.merge_threshold * config.threshold_scale)
+        assert config.finest_spacing_m == pytest.approx(config.spacing_m / 2 ** (config.max_level / 3))
+        assert config.name.startswith(f"{config.criterion}-{config.spacing_m / f:g}m")
+    assert {"thermal-68m-L4", "thermal-54m-t0.25"} <= {c.name for c in configs}
 
 
 def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):

@@ -285,10 +285,15 @@ def test_table1_row_is_ms_per_step_without_double_counting():
     (None, None),                                                                        # no verdict file
     ({"best": None}, None),                                                              # no variant qualified
     ({"best": {"name": "paper-68m", "criterion": "paper", "spacing_m": 68.0}}, None),    # the 5b row's own setting
-    ({"best": {"name": "thermal-68m", "criterion": "thermal", "spacing_m": 68.0}},
-     ("thermal-68m", {"adaptive.criterion": "thermal", "particles.spacing": 68.0})),
-    ({"best": {"name": "lookahead-54m", "criterion": "lookahead", "spacing_m": 54.0}},
-     ("lookahead-54m", {"adaptive.criterion": "lookahead", "particles.spacing": 54.0})),
+    ({"best": {"name": "thermal-68m", "criterion": "thermal", "spacing_m": 68.0}},            # older verdicts
+     ("thermal-68m", {"adaptive.criterion": "thermal", "adaptive.max_level": 3, "particles.spacing": 68.0})),
+    ({"best": {"name": "lookahead-54m", "criterion": "lookahead", "spacing_m": 54.0, "max_level": 3}},
+     ("lookahead-54m", {"adaptive.criterion": "lookahead", "adaptive.max_level": 3, "particles.spacing": 54.0})),
+    ({"best": {"name": "thermal-68m-L4-t0.25", "criterion": "thermal", "spacing_m": 68.0, "max_level": 4,
+               "threshold_scale": 0.25}},
+     ("thermal-68m-L4-t0.25", {"adaptive.criterion": "thermal", "adaptive.max_level": 4,
+                               "adaptive.split_threshold": 0.075, "adaptive.merge_threshold": 0.0125,
+                               "particles.spacing": 68.0})),
 ])
 def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, best, expected):
     """Table 1 keeps the paper's four rows and, when the growing study's verdict names a best variant other
@@ -307,9 +312,10 @@ def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, b
     else:
         assert len(rows) == 5 and rows[4][:4] == ("growing", "5b", "adaptive", expected[0])
         assert rows[4][4].adaptive.criterion == expected[1]["adaptive.criterion"]
+        assert rows[4][4].adaptive.max_level == expected[1]["adaptive.max_level"]
         assert rows[4][4].particles.spacing == expected[1]["particles.spacing"]
-        smoke = SimpleNamespace(data=tmp_path, scale=SCALES["smoke"])   # below the GPU scale: the criterion only
-        assert best_variant(smoke)[1] == {"adaptive.criterion": expected[1]["adaptive.criterion"]}
+        smoke = SimpleNamespace(data=tmp_path, scale=SCALES["smoke"])   # below the GPU scale: all but the spacing
+        assert best_variant(smoke)[1] == {k: v for k, v in expected[1].items() if k != "particles.spacing"}
 
 
 def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):

@@ -83,6 +83,11 @@ SCENES = ("growing", "cumulus")
 CRITERIA = ("paper", "lookahead", "thermal")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
+FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0),   # (criterion, level-0 spacing m, max_level, threshold scale):
+                    ("thermal", 68.0, 3, 0.25),  # one level deeper (finest 27 m from 68 m), and split/merge
+                    ("thermal", 54.0, 3, 0.25),  # thresholds at a quarter (eq. 20: more of the warm air fine)
+                    ("thermal", 68.0, 4, 0.25))
+DEFAULT_MAX_LEVEL = 3
 REFERENCE_SPACING = 27.0
 ANALYSIS_GRID = (32, 32, 32)
 SPACING_FACTOR = {"gpu": 1.0, "cpu": 3.0, "smoke": 6.0}
@@ -101,21 +106,47 @@ class Config:
     kind: str          # uniform | adaptive | reference
     spacing_m: float   # particle spacing (adaptive: level 0)
     criterion: str     # "" for uniform runs
+    max_level: int = 0              # adaptive: the finest level (spacing halves every 3 levels); 0 for uniform
+    threshold_scale: float = 1.0    # adaptive: eq. 20's split and merge thresholds (alpha, beta) times this
+
+    @property
+    def finest_spacing_m(self) -> float:
+        """The finest particles' spacing, m (h_l = h0 2^(-l/3), section 5.2)."""
+        return self.spacing_m * 2.0 ** (-self.max_level / 3.0)
+
+    def adaptive_overrides(self, base: Scene) -> dict:
+        """Overrides of `base` (an adaptive scene) for this variant: criterion, finest level, scaled thresholds."""
+        if self.kind != "adaptive":
+            return {}
+        over = {"adaptive.criterion": self.criterion, "adaptive.max_level": self.max_level}
+        if self.threshold_scale != 1.0:
+            over |= {"adaptive.split_threshold": base.adaptive.split_threshold * self.threshold_scale,
+                     "adaptive.merge_threshold": base.adaptive.merge_threshold * self.threshold_scale}
+        return over
+
+
+def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float) -> str:
+    """'thermal-68m', 'thermal-68m-L4' (finest level 4), 'thermal-54m-t0.25' (thresholds times 0.25)."""
+    name = f"{criterion}-{spacing:g}m"
+    if max_level != DEFAULT_MAX_LEVEL:
+        name += f"-L{max_level}"
+    if threshold_scale != 1.0:
+        name += f"-t{threshold_scale:g}"
+    return name
 
 
 def configs(scale_name: str) -> list[Config]:
     f = SPACING_FACTOR.get(scale_name, 1.0)
     out = [Config(f"uniform-{s:g}m", "uniform", s * f, "") for s in UNIFORM_SPACINGS]
-    out += [Config(f"{c}-{s:g}m", "adaptive", s * f, c) for c in CRITERIA for s in ADAPTIVE_SPACINGS]
+    variants = [(c, s, DEFAULT_MAX_LEVEL, 1.0) for c in CRITERIA for s in ADAPTIVE_SPACINGS] + list(FURTHER_VARIANTS)
+    out += [Config(variant_name(c, s, level, t), "adaptive", s * f, c, level, t) for c, s, level, t in variants]
     out.append(Config(f"reference-{REFERENCE_SPACING:g}m", "reference", REFERENCE_SPACING * f, ""))
     return out
 
 
 def scene_for(config: Config, scene_name: str, step_fraction: float) -> Scene:
     base = load_scene(f"{scene_name}_adaptive" if config.kind == "adaptive" else scene_name)
-    scene = base.with_spacing(config.spacing_m)
-    if config.kind == "adaptive":
-        scene = scene.replace(**{"adaptive.criterion": config.criterion})
+    scene = base.with_spacing(config.spacing_m).replace(**config.adaptive_overrides(base))
     return scale_steps(scene, step_fraction)
 
 
@@ -260,7 +291,8 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
         stable = [bool(results[i].stable) for i in idx]
         with np.errstate(all="ignore"):
             row = {"config": config.name, "kind": config.kind, "criterion": config.criterion,
-                   "spacing_m": config.spacing_m, "seeds": len(idx), "stable_seeds": int(sum(stable)),
+                   "spacing_m": config.spacing_m, "max_level": config.max_level,
+                   "threshold_scale": config.threshold_scale, "seeds": len(idx), "stable_seeds": int(sum(stable)),
                    "particles": float(np.nanmean(parts)), "ms_per_step": float(np.nanmean(ms)),
                    "ms_per_step_spread": float(np.nanstd(ms)), "pbf_ms": float(np.nanmean(pbf)),
                    **err, "error_seed_spread": (float(np.nanstd(per_seed)) if np.isfinite(per_seed).sum() >= 2
@@ -270,7 +302,8 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
         for i, e_seed in zip(idx, per_seed):
             res = results[i]
             run_rows.append({"config": config.name, "kind": config.kind, "criterion": config.criterion,
-                             "spacing_m": config.spacing_m, "seed": entries[i][1], "stable": bool(res.stable),
+                             "spacing_m": config.spacing_m, "max_level": config.max_level,
+                             "threshold_scale": config.threshold_scale, "seed": entries[i][1], "stable": bool(res.stable),
                              "reason": res.reason, "particles": _mean_particles(res),
                              "max_particles": res.max_particles,
                              "ms_per_step": _ms_per_step(res, entries[i][2].total_steps), "pbf_ms": _pbf_ms(res),
@@ -337,7 +370,11 @@ def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_
     variants, excluded, speedups = [], [], {}
     for row in per_config[per_config.kind != "reference"].itertuples():
         entry = {"name": row.config, "criterion": row.criterion if isinstance(row.criterion, str) else "",
-                 "spacing_m": float(row.spacing_m), "stable_seeds": int(row.stable_seeds), "seeds": int(row.seeds),
+                 "spacing_m": float(row.spacing_m),
+                 # CSVs written before these columns existed: every variant then had max_level 3, thresholds x1
+                 "max_level": int(getattr(row, "max_level", DEFAULT_MAX_LEVEL if row.kind == "adaptive" else 0)),
+                 "threshold_scale": float(getattr(row, "threshold_scale", 1.0)),
+                 "stable_seeds": int(row.stable_seeds), "seeds": int(row.seeds),
                  "error": _none_if_nan(row.error), "ms_per_step": _none_if_nan(row.ms_per_step)}
         if row.kind == "adaptive":
             t_uniform = time_at_error(front, row.error)
@@ -478,9 +515,11 @@ def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
     qualified = adaptive[adaptive["config"].isin([v["name"] for v in verdict.get("variants") or []])]
     best = ((verdict.get("best") or {}).get("name")
             or (qualified if len(qualified) else adaptive).sort_values("error")["config"].iloc[0])
-    spacing = float(per_config.loc[per_config.config == best, "spacing_m"].iloc[0])
+    row = per_config.loc[per_config.config == best].iloc[0]
+    spacing = float(row["spacing_m"])
+    finest = spacing * 2.0 ** (-float(row.get("max_level", DEFAULT_MAX_LEVEL)) / 3.0)   # h_l = h0 2^(-l/3)
     names = [best]
-    for target in (spacing, spacing / 2.0):   # level 0, and level 3 (h_l = h0 2^(-l/3): spacing halves)
+    for target in (spacing, finest):          # level 0, and the finest level
         nearest = uniform.iloc[int(np.argmin(np.abs(np.log(uniform["spacing_m"].to_numpy(float) / target))))]
         if nearest["config"] not in names:
             names.append(str(nearest["config"]))

@@ -18,7 +18,7 @@ with: mass_centre_rise_m, density_excess_mean, density_deficit_mean (:func:`inco
 
 Beside the paper's rows: when OUT/data/adaptive_verdict.json (``cloudpbf adaptive-pareto --scene growing``)
 names a best adaptive variant that is not the scene's own setting, a fifth row times ``growing_adaptive``
-with that variant's criterion (and, at the GPU scale, its level-0 spacing); its ``variant`` column holds the
+with that variant's criterion, finest level and thresholds (and, at the GPU scale, its level-0 spacing); its ``variant`` column holds the
 variant's name (empty on the paper's rows) and its paper columns are those of the paper's adaptive row.
 """
 from __future__ import annotations
@@ -32,6 +32,7 @@ import typer
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               refusals, study_context)
+from bench.studies.adaptive_pareto import DEFAULT_MAX_LEVEL, Config
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -72,7 +73,9 @@ def best_variant(ctx: StudyContext) -> tuple[str, dict] | None:
     if not best.get("name") or not criterion:
         return None
     base = load_scene("growing_adaptive")
-    over = {"adaptive.criterion": criterion}
+    variant = Config(best["name"], "adaptive", float(spacing or base.particles.spacing), criterion,
+                     int(best.get("max_level") or DEFAULT_MAX_LEVEL), float(best.get("threshold_scale") or 1.0))
+    over = variant.adaptive_overrides(base)
     if ctx.scale.particles is None and spacing:          # the study's spacings are those of the GPU scale
         over["particles.spacing"] = float(spacing)
     if base.replace(**over) == base:

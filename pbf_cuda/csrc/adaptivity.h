@@ -49,8 +49,6 @@ struct AdaptParams {
     float lookahead_height;     // m; 0: the paper's criterion
     bool refine_warm_air;       // the 'thermal' criterion
     float wall_band;            // m; particles closer than this to a wall stay at level 0 (0: off)
-    float domain[3];            // m
-    bool wall[3];               // walls at 0 and domain[a] on axis a
 };
 
 // Shape energy (eq. 20) and candidate marks. The refinement criterion decides what water E measures:
@@ -67,6 +65,7 @@ struct AdaptParams {
 // Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
 // Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion.
 struct MarkCandidates {
+    GridGeometry grid;          // the domain and which axes have walls
     AdaptParams ap;
     AtmosphereParams atm;
     LevelRadii radii;
@@ -90,9 +89,9 @@ struct MarkCandidates {
         // Next to a wall the boundary particles sit on the level-0 lattice: a finer kernel sees them as lumps and
         // lets a fine particle slip against the wall, so within h0 of a wall E = 0 (never split, finer ones merge).
         for (int a = 0; a < 3; ++a) {
-            if (!ap.wall[a]) continue;
+            if (grid.periodic[a]) continue;
             float x = component(xyz(pos[i]), a);
-            if (x < ap.wall_band || x > ap.domain[a] - ap.wall_band) e = 0.0f;
+            if (x < ap.wall_band || x > grid.domain[a] - ap.wall_band) e = 0.0f;
         }
         energy[i] = e;
         int l = radii.level_of_mass(pos[i].w);

@@ -54,10 +54,6 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
     ap.refine_warm_air = p.thermodynamics && p.refine_warm_air;
     ap.h0 = p.h0;
     ap.wall_band = p.coarse_near_walls ? p.h0 : 0.0f;
-    for (int a = 0; a < 3; ++a) {
-        ap.domain[a] = p.domain[a];
-        ap.wall[a] = !p.periodic[a];
-    }
     for (int l = 0; l < kMaxLevels; ++l) ap.spacing[l] = p.spacing * std::pow(2.0f, -l / 3.0f);
     // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.
     ap.conflict_radius = ap.spacing[1] + p.min_distance * radii.h[1];
@@ -67,7 +63,7 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
 
 // Shape energy and split / merge candidates, then each merge candidate's partner (read-only passes).
 inline void mark_candidates(SolverData& d, const CellRanges& fl) {
-    parallel_for(d.n, MarkCandidates{d.ap, d.atm, d.radii, raw(d.pos), raw(d.temperature), raw(d.vapor), raw(d.cloud),
+    parallel_for(d.n, MarkCandidates{d.grid, d.ap, d.atm, d.radii, raw(d.pos), raw(d.temperature), raw(d.vapor), raw(d.cloud),
                                      raw(d.energy), raw(d.flags)});
     parallel_for(d.n, FindMergePartners{d.grid, fl, d.radii, raw(d.flags), raw(d.merge_partner)});
 }
