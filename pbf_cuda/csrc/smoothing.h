@@ -15,6 +15,14 @@
 // point also next to the adiabatic walls, and within the pass sum m T0(y) is fixed, so sum m T is still
 // conserved exactly. Up to three fields (temperature, vapor, cloud) share one neighbour pass; values are
 // read from the input arrays and written to the output arrays (Jacobi).
+//
+// Limiter. Per unit mass the step is v*_i = v_i + sum_j c_ij (v_j - v_i), c_ij >= 0: a convex combination of
+// the particle and its neighbours, so within their range, as long as S_i = sum_j c_ij <= 1. On a lattice
+// S_i is about 0.9 kappa; between levels it is not bounded (a fine particle's neighbours hold up to 2^l times
+// its mass; measured: a wet level-1 cluster among dry level-0 particles goes negative at kappa = 1, a level-4
+// particle at kappa = 0.1 in a cumulus run). Where S can reach 1 (adaptive runs, or kappa > 0.5) a first pass
+// sums S_i and every pair's exchange is scaled by min(1, S_cap / max(S_i, S_j)): symmetric in the pair, so
+// sum m v stays exact, and sum_j c'_ij <= S_cap: no particle leaves its neighbourhood's range.
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -28,29 +36,63 @@ struct SmoothingFields {
     float* out[3];
 };
 
+constexpr float kSmoothingWeightCap = 0.5f;  // S_cap of the limiter: at most half a particle's value exchanged
+
+// The pair's exchange coefficient per unit mass of i, c_ij = (beta_i + beta_j)/2 (m_j / rho0) s_ij >= 0
+// (beta < 0, and x_ij . grad W_ij < 0 for the spiky kernel).
+struct SmoothingPair {
+    float h0, inv_rest_density, beta0, eps_rel;
+    template <class Policy>
+    PBF_HD float coefficient(Vec3 r, float r2, float hi, float hj, float mj) const {
+        float beta_i = Policy::area_scaled(beta0, hi, h0);     // beta_l = beta_0 (h_l / h0)^2
+        float beta_j = Policy::area_scaled(beta0, hj, h0);
+        Vec3 gw = Policy::grad_W(r, r2, hi, hj);
+        return 0.5f * (beta_i + beta_j) * mj * inv_rest_density * dot(r, gw) / (r2 + eps_rel * hi * hj);
+    }
+};
+
+// S_i = sum_j c_ij of the limiter (the first pass).
+template <class Policy>
+struct SmoothingWeightSums {
+    GridGeometry grid;
+    CellRanges fluid;
+    LevelRadii radii;
+    SmoothingPair pair;
+    float* weight_sum;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 pi = fluid.pos[i];
+        float hi = Policy::radius(radii, pair.h0, pi.w);
+        float s = 0.0f;
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, pair.h0, i, xyz(pi), [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (j != i) s += fmaxf(pair.coefficient<Policy>(r, r2, hi, hj, mj), 0.0f);
+        });
+        weight_sum[i] = s;
+    }
+};
+
 template <class Policy>
 struct SmoothScalars {
     GridGeometry grid;
     CellRanges fluid;
     LevelRadii radii;
-    float h0;
-    float inv_rest_density;
-    float beta0;    // kappa grad C_ii / |grad C_i|^2 of a full level-0 lattice neighbourhood (eq. 17), m^2
-    float eps_rel;  // epsilon of eq. 13 relative to h_i h_j
-    float lapse;    // environment lapse rate, K/m (temperature is smoothed as T - T0(y))
+    SmoothingPair pair;       // beta0: kappa grad C_ii / |grad C_i|^2 of a full level-0 lattice (eq. 17), m^2
+    float lapse;              // environment lapse rate, K/m (temperature is smoothed as T - T0(y))
+    const float* weight_sum;  // S_i of the limiter; nullptr: no limiter
     SmoothingFields f;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
-        float hi = Policy::radius(radii, h0, pi.w);
-        float beta_i = Policy::area_scaled(beta0, hi, h0);     // beta_l = beta_0 (h_l / h0)^2
+        float hi = Policy::radius(radii, pair.h0, pi.w);
+        float s_i = weight_sum ? weight_sum[i] : 0.0f;
         float vi[3], dT[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) vi[k] = f.in[k] ? f.in[k][i] : 0.0f;
-        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, pair.h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
-            float beta_j = Policy::area_scaled(beta0, hj, h0);
-            Vec3 gw = Policy::grad_W(r, r2, hi, hj);
-            float c = 0.5f * (beta_i + beta_j) * mj * inv_rest_density * dot(r, gw) / (r2 + eps_rel * hi * hj);
+            float c = pair.coefficient<Policy>(r, r2, hi, hj, mj);
+            if (weight_sum) {
+                float s = fmaxf(s_i, weight_sum[j]);
+                if (s > kSmoothingWeightCap) c *= kSmoothingWeightCap / s;
+            }
             if (f.in[0]) dT[0] -= c * (vi[0] - f.in[0][j] + lapse * r.y);
             for (int k = 1; k < 3; ++k)
                 if (f.in[k]) dT[k] -= c * (vi[k] - f.in[k][j]);

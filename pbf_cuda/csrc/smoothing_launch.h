@@ -1,6 +1,8 @@
 // Launch code of the temperature smoothing (section 4.1, eq. 12-17; smoothing.h): one Jacobi pass over the
 // smoothed fields (temperature, optionally vapor and cloud) at the predicted positions.
 #pragma once
+#include <type_traits>
+
 #include "diagnostics_launch.h"
 #include "smoothing.h"
 #include "solver_data.h"
@@ -27,8 +29,16 @@ double smooth_fields(SolverData& d) {
         sf.in[k] = raw(*fields[k]);
         sf.out[k] = raw(d.smooth_out[k]);
     }
-    parallel_for(d.n, SmoothScalars<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, d.p.h0, d.cp.inv_rest_density,
-                                            d.p.smoothing_beta, d.p.smoothing_epsilon, d.p.lapse_rate, sf});
+    CellRanges fluid = d.fluid_ranges(d.pred);
+    SmoothingPair pair{d.p.h0, d.cp.inv_rest_density, d.p.smoothing_beta, d.p.smoothing_epsilon};
+    // The limiter's pass where the weights can reach 1 (smoothing.h): mixed levels, or kappa above 0.5
+    // (a lattice's S_i is about 0.9 kappa); elsewhere it would change nothing and is skipped.
+    const float* weight_sum = nullptr;
+    if (std::is_same<Policy, AdaptivePolicy>::value || d.p.kappa > 0.5f) {
+        parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, pair, raw(d.float_tmp)});
+        weight_sum = raw(d.float_tmp);
+    }
+    parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.p.lapse_rate, weight_sum, sf});
     for (int k = 0; k < 3; ++k)
         if (d.p.smooth_fields[k]) fields[k]->swap(d.smooth_out[k]);
     d.clock.end(kPhaseSmoothing);
