@@ -315,6 +315,15 @@ class Scene:
         a = self.atmosphere
         return a.saturation_a * np.exp(a.saturation_b / (np.asarray(temperature) + a.saturation_c))
 
+    def lifting_condensation_level(self, surface_temperature, q):
+        """The model's lifting condensation level in m of air with dry static temperature T_s = T + Gamma_d y
+        (K) and total water q (kg/kg): it saturates where T_s - Gamma_d z reaches the dew point T_d, the
+        temperature at which eq. 10 gives q, T_d = B / ln(q / A) - C; z = (T_s - T_d) / Gamma_d."""
+        import numpy as np
+        a = self.atmosphere
+        dew_point = a.saturation_b / np.log(np.asarray(q, float) / a.saturation_a) - a.saturation_c
+        return (np.asarray(surface_temperature, float) - dew_point) / a.dry_lapse_rate
+
     # ---- transformations ---------------------------------------------------------------
     def to_dict(self) -> dict:
         out = {"scene": {"name": self.name, "description": self.description}}

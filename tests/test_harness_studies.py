@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from bench import execution, runs
 from bench.pareto import pareto_mask
@@ -372,6 +373,48 @@ def test_particles_vs_grid_means_over_the_cloudy_period_of_both():
     assert out.loc["cloud_top", "rel_diff"] == pytest.approx(-0.25)
     assert (out["cloudy_from_s"] == 400.0).all() and (out["times"] == len(cloudy)).all()
     assert particles_vs_grid(pd.DataFrame(rows).query("mode != 'grid'")).empty
+
+
+def test_mixed_layer_lcl_is_the_lcl_of_the_mean_air_below_half_the_cloud_base():
+    """Layers below half the seed-mean cloud base are averaged (dry static temperature T + Gamma_d z and total
+    water) and lifted to saturation; layers above do not count, and a time without cloud has no LCL."""
+    import pandas as pd
+    from bench.studies.compare import mixed_layer_lcl, particles_vs_grid
+    scene = load_scene("growing")
+    a = scene.atmosphere
+    z = np.arange(25.0, 3200.0, 50.0)
+    t_s, q = 301.0, 0.015                                   # well mixed below; anything else above
+    rows, series = [], []
+    for mode in ("non-adaptive", "grid"):
+        for seed, wiggle in ((0, -0.2), (1, 0.2)):          # seed means cancel the wiggle
+            for time_s, base in ((200.0, float("nan")), (400.0, 900.0), (600.0, 1200.0)):
+                for zk in z:
+                    mixed = zk < 0.5 * base
+                    rows.append({"mode": mode, "seed": seed, "time_s": time_s, "z": zk,
+                                 "temperature": (t_s + wiggle if mixed else 250.0) - a.dry_lapse_rate * zk,
+                                 "vapor": (q - 0.001 if mixed else 0.03), "cloud": (0.001 if mixed else 0.0)})
+                series.append({"mode": mode, "seed": seed, "time_s": time_s, "cloud_base": base,
+                               "cloud_top": 2000.0, "cloud_cover": 0.0 if base != base else 0.5, "lwp_mean": 0.1})
+    profiles, series = pd.DataFrame(rows), pd.DataFrame(series)
+    lcl = mixed_layer_lcl(profiles, series, "grid", scene)
+    expected = float(scene.lifting_condensation_level(t_s, q))
+    assert np.isnan(lcl[200.0]) and lcl[400.0] == pytest.approx(expected) and lcl[600.0] == pytest.approx(expected)
+    out = particles_vs_grid(series, profiles=profiles, scene=scene).set_index("metric")
+    assert out.loc["mixed_layer_lcl", "particles"] == pytest.approx(expected)
+    assert out.loc["mixed_layer_lcl", "rel_diff"] == pytest.approx(0.0, abs=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(t_s=st.floats(270.0, 320.0), rh=st.floats(0.05, 0.99))
+def test_lifting_condensation_level_saturates_the_lifted_air(t_s, rh):
+    """Closed form: air of dry static temperature T_s and total water q = rh s(T_s) lifted dry-adiabatically to
+    the LCL is exactly saturated there (eq. 10), and it lies above the ground for unsaturated air."""
+    scene = load_scene("growing")
+    a = scene.atmosphere
+    q = rh * float(scene.saturation(t_s))
+    z = float(scene.lifting_condensation_level(t_s, q))
+    assert z > 0.0
+    assert float(scene.saturation(t_s - a.dry_lapse_rate * z)) == pytest.approx(q, rel=1e-9)
 
 
 def test_sweep_cloud_means_and_the_convergence_plot():

@@ -753,8 +753,9 @@ def _compare(inp: Inputs, sec: Section, env: dict | None) -> None:
             sec.add("table", _table(agreement[["metric", "particles", "grid", "rel_diff", "cloudy_from_s",
                                                "cloudy_to_s"]]), caption=(
                 "Particles (non-adaptive) against the grid: time means over the cloudy period (both seed-mean covers "
-                "above 1%) of the seed-mean cloud base and top (m), cover and mean LWP (kg/m2); rel_diff = "
-                "(particles - grid) / grid."))
+                "above 1%) of the seed-mean cloud base and top (m), cover and mean LWP (kg/m2), and each solver's "
+                "mixed-layer LCL (m: the lifting condensation level of the mean air below half its cloud base); "
+                "rel_diff = (particles - grid) / grid."))
         if "seed" in ts.columns and ts.groupby(keys)["seed"].nunique().min() < 5:
             sec.add("note", "fewer than 5 seeds in at least one group: the spread is not well sampled.", level="warn")
     else:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Annotated, Optional
 
+import numpy as np
 import pandas as pd
 import typer
 
@@ -131,17 +132,44 @@ def run_compare(ctx: StudyContext, scene_name: str = "growing", seeds: int | Non
         "compare_profiles": pd.concat(profiles, ignore_index=True) if profiles else pd.DataFrame(columns=head),
         "compare_runs": pd.DataFrame(table),
     }
-    out["particles_vs_grid"] = particles_vs_grid(out["compare_timeseries"])
+    out["particles_vs_grid"] = particles_vs_grid(out["compare_timeseries"], profiles=out["compare_profiles"],
+                                                 scene=plan[0][2].scene)
     for name, frame in out.items():
         runs.write_csv(frame, ctx.data / f"{name}.csv")
     return out
 
 
-def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive") -> pd.DataFrame:
+def mixed_layer_lcl(profiles: pd.DataFrame, series: pd.DataFrame, mode: str, scene: Scene) -> pd.Series:
+    """time_s -> the lifting condensation level (m) of `mode`'s mixed-layer air: the seed-mean layers below
+    half that time's seed-mean cloud base (the sub-cloud layer, clear of the entrainment at its top), their
+    mean dry static temperature T + Gamma_d z and total water v + w (equal-mass layers), through
+    Scene.lifting_condensation_level.  NaN where there is no cloud base yet."""
+    a = scene.atmosphere
+    prof = profiles[profiles["mode"] == mode].groupby(["time_s", "z"])[["temperature", "vapor", "cloud"]].mean()
+    base = series[series["mode"] == mode].groupby("time_s")["cloud_base"].mean()
+    out = {}
+    for t, layers in prof.groupby(level="time_s"):
+        z = layers.index.get_level_values("z").to_numpy(float)
+        b = base.get(t, float("nan"))
+        below = z < 0.5 * b if b == b else np.zeros(len(z), bool)
+        if not below.any():
+            out[t] = float("nan")
+            continue
+        rows = layers[below]
+        t_s = float(np.mean(rows["temperature"].to_numpy(float) + a.dry_lapse_rate * z[below]))
+        q = float(np.mean(rows["vapor"].to_numpy(float) + rows["cloud"].to_numpy(float)))
+        out[t] = float(scene.lifting_condensation_level(t_s, q))
+    return pd.Series(out, dtype=float)
+
+
+def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive", profiles: pd.DataFrame | None = None,
+                      scene: Scene | None = None) -> pd.DataFrame:
     """Time means over the cloudy period of the seed-mean cloud statistics of `mode`'s particles and of the
     grid: one row per metric (cloud_base, cloud_top in m; cover, a fraction; lwp in kg/m^2) with
     rel_diff = (particles - grid) / grid.  The cloudy period is the snapshot times at which the seed-mean
-    cover of both is above CLOUDY_COVER (grid times matched to the particles' nearest ones)."""
+    cover of both is above CLOUDY_COVER (grid times matched to the particles' nearest ones).  With the
+    profiles and the scene, a last row mixed_layer_lcl: each solver's :func:`mixed_layer_lcl` (m), where its
+    cloud base should sit."""
     columns = ["metric", "particles", "grid", "rel_diff", "cloudy_from_s", "cloudy_to_s", "times", "device", "commit"]
     need = {"mode", "time_s", *(c for _, c in CLOUD_MEANS)}
     if series is None or series.empty or not need <= set(series.columns):
@@ -163,6 +191,13 @@ def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive") -> pd.Da
     for metric, column in CLOUD_MEANS:
         p, g = float(part.loc[cloudy, column].mean()), float(grid.loc[cloudy, column].mean())
         rows.append({"metric": metric, "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
+                     "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
+                     "device": device, "commit": commit})
+    if profiles is not None and scene is not None and not profiles.empty:
+        lcl = {m: mixed_layer_lcl(profiles, series, m, scene) for m in (mode, "grid")}
+        p = float(lcl[mode].reindex(times).mean())
+        g = float(lcl["grid"].reindex(grid.index[cloudy], method="nearest").mean())
+        rows.append({"metric": "mixed_layer_lcl", "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
                      "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
                      "device": device, "commit": commit})
     return pd.DataFrame(rows, columns=columns)
