@@ -5,7 +5,9 @@ For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide dom
 * uniform (non-adaptive) runs at four spacings, e.g. 68, 54, 43 and 34 m at the GPU scale,
 * every adaptive variant (refinement criterion ``paper`` = eq. 20 on the cloud water, ``lookahead`` = eq. 20
   on the water a particle would hold after rising ``lookahead_height``, ``thermal`` = eq. 20 on the heat
-  excess over the environment as cloud water) at two level-0 spacings (68 and 54 m),
+  excess over the environment as cloud water) at two level-0 spacings (68 and 54 m) with max level 3, and
+  the :data:`FURTHER_VARIANTS` of ``thermal``: one level deeper from 68 m (``thermal-68m-L4``, finest 27 m)
+  and eq. 20's split/merge thresholds times 0.25 (``-t0.25``),
 * a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
 
 each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
@@ -40,7 +42,8 @@ each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configura
 
     {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
      "min_stable_seeds": n,                             # the rule the verdict applied
-     "variants": [{"name", "spacing_m", "criterion", "speedup_at_equal_error", "error", "ms_per_step",
+     "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "speedup_at_equal_error",
+                   "error", "ms_per_step",
                    "particles", "cost_ratio_per_particle", "stable_seeds", "seeds"}],   # the qualifying ones
      "excluded": [{"name", "kind", "stable_seeds", "seeds", "reasons", ...}],
      "best": {... one of variants ...} or null, "verdict": "...", "noise_floor": f, "device": ..., "commit": ...}
