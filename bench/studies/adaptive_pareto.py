@@ -102,6 +102,11 @@ SERIES = (("cover", "cloud_cover"), ("volume", "cloudy_volume"), ("lwp", "lwp_me
           ("base", "cloud_base"), ("top", "cloud_top"))
 
 
+def finest_spacing(spacing_m: float, max_level: float) -> float:
+    """The finest particles' spacing, m, of level-0 spacing `spacing_m` (h_l = h0 2^(-l/3), section 5.2)."""
+    return spacing_m * 2.0 ** (-max_level / 3.0)
+
+
 @dataclass(frozen=True)
 class Config:
     """One configuration of the study (all its seeds share it)."""
@@ -114,8 +119,7 @@ class Config:
 
     @property
     def finest_spacing_m(self) -> float:
-        """The finest particles' spacing, m (h_l = h0 2^(-l/3), section 5.2)."""
-        return self.spacing_m * 2.0 ** (-self.max_level / 3.0)
+        return finest_spacing(self.spacing_m, self.max_level)
 
     def adaptive_overrides(self, base: Scene) -> dict:
         """Overrides of `base` (an adaptive scene) for this variant: criterion, finest level, scaled thresholds."""
@@ -520,7 +524,7 @@ def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
             or (qualified if len(qualified) else adaptive).sort_values("error")["config"].iloc[0])
     row = per_config.loc[per_config.config == best].iloc[0]
     spacing = float(row["spacing_m"])
-    finest = spacing * 2.0 ** (-float(row.get("max_level", DEFAULT_MAX_LEVEL)) / 3.0)   # h_l = h0 2^(-l/3)
+    finest = finest_spacing(spacing, float(row.get("max_level", DEFAULT_MAX_LEVEL)))
     names = [best]
     for target in (spacing, finest):          # level 0, and the finest level
         nearest = uniform.iloc[int(np.argmin(np.abs(np.log(uniform["spacing_m"].to_numpy(float) / target))))]

@@ -187,19 +187,17 @@ def particles_vs_grid(series: pd.DataFrame, mode: str = "non-adaptive", profiles
     device = " / ".join(sorted(series.loc[series["mode"].isin([mode, "grid"]), "device"].dropna().astype(str).unique())) \
         if "device" in series else ""
     commit = str(series["commit"].dropna().iloc[0]) if "commit" in series and series["commit"].notna().any() else ""
-    rows = []
-    for metric, column in CLOUD_MEANS:
-        p, g = float(part.loc[cloudy, column].mean()), float(grid.loc[cloudy, column].mean())
-        rows.append({"metric": metric, "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
-                     "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
-                     "device": device, "commit": commit})
+    def row(metric: str, p: float, g: float) -> dict:
+        return {"metric": metric, "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
+                "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
+                "device": device, "commit": commit}
+
+    rows = [row(metric, float(part.loc[cloudy, column].mean()), float(grid.loc[cloudy, column].mean()))
+            for metric, column in CLOUD_MEANS]
     if profiles is not None and scene is not None and not profiles.empty:
         lcl = {m: mixed_layer_lcl(profiles, series, m, scene) for m in (mode, "grid")}
-        p = float(lcl[mode].reindex(times).mean())
-        g = float(lcl["grid"].reindex(grid.index[cloudy], method="nearest").mean())
-        rows.append({"metric": "mixed_layer_lcl", "particles": p, "grid": g, "rel_diff": (p - g) / g if g else float("nan"),
-                     "cloudy_from_s": float(times.min()), "cloudy_to_s": float(times.max()), "times": int(cloudy.sum()),
-                     "device": device, "commit": commit})
+        rows.append(row("mixed_layer_lcl", float(lcl[mode].reindex(times).mean()),
+                        float(lcl["grid"].reindex(grid.index[cloudy], method="nearest").mean())))
     return pd.DataFrame(rows, columns=columns)
 
 
