@@ -48,6 +48,8 @@ import numpy as np
 import jax.numpy as jnp
 from jax import lax
 
+from pbf_cuda.environment import EnvironmentProfile, vapor_ratio
+
 from . import compat
 from .projection import _lower_face, laplacian_eigenvalues, project, zero_wall_faces
 
@@ -73,8 +75,7 @@ class Params:
     size: tuple
     periodic: tuple
     dt: float
-    ground_temperature: float
-    lapse_rate: float
+    environment: EnvironmentProfile   # T0(y) (pbf_cuda/environment.py)
     dry_lapse_rate: float
     buoyancy: float
     cloud_gravity: float
@@ -90,6 +91,7 @@ class Params:
     noise_offset: tuple
     heating_patch_radius: float
     initial_vapor_ratio: float
+    vapor_ratio_above: float
     vapor_profile: str
     vorticity: float
     gravity: tuple
@@ -115,13 +117,14 @@ def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
     return Params(
         shape=tuple(int(n) for n in shape), size=tuple(float(s) for s in scene.domain.size),
         periodic=tuple(b == "periodic" for b in scene.domain.boundary), dt=float(scene.time.dt),
-        ground_temperature=a.ground_temperature, lapse_rate=a.lapse_rate, dry_lapse_rate=a.dry_lapse_rate,
+        environment=EnvironmentProfile.of(a), dry_lapse_rate=a.dry_lapse_rate,
         buoyancy=a.buoyancy, cloud_gravity=a.cloud_gravity, latent_heat=a.latent_heat, phase_rate=a.phase_rate,
         saturation_a=a.saturation_a, saturation_b=a.saturation_b, saturation_c=a.saturation_c,
         heating_rate=a.heating_rate, heating_depth=a.heating_depth, noise_frequency=a.noise_frequency,
         noise_amplitude=a.noise_amplitude, noise_offset=tuple(a.noise_offset),
         heating_patch_radius=float(a.heating_patch_radius),
-        initial_vapor_ratio=a.initial_vapor_ratio, vapor_profile=a.vapor_profile,
+        initial_vapor_ratio=a.initial_vapor_ratio, vapor_ratio_above=float(a.vapor_ratio_above),
+        vapor_profile=a.vapor_profile,
         vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
         diurnal_period=float(a.diurnal_period), relaxation_time=float(a.relaxation_time),
         autoconversion_rate=float(a.autoconversion_rate), autoconversion_threshold=float(a.autoconversion_threshold),
@@ -142,7 +145,13 @@ def face_coordinates(p: Params, axis: int):
 
 
 def environment_temperature(p: Params, y):
-    return p.ground_temperature - p.lapse_rate * y
+    """T0(y), K (host, float64)."""
+    return p.environment.temperature(y)
+
+
+def stratification(p: Params, y):
+    """Gamma_d - Gamma(y), K/m (host): the rate at which rising air cools relative to the environment."""
+    return p.dry_lapse_rate - p.environment.lapse(y)
 
 
 def saturation(p: Params, T):
@@ -152,8 +161,9 @@ def saturation(p: Params, T):
 def initial_vapor(p: Params, y):
     """v0(y) of section 5 (host, float64): k_v times saturation at T0(y) ('relative') or at the ground."""
     y = np.asarray(y, dtype=np.float64)
-    t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.ground_temperature)
-    return p.initial_vapor_ratio * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+    t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.environment.ground_temperature)
+    k = vapor_ratio(p.environment, p.initial_vapor_ratio, p.vapor_ratio_above, y)
+    return k * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
 
 
 def diurnal_factor(t, period):
@@ -201,12 +211,15 @@ def make_aux(p: Params, dtype):
     mask = np.clip((p.heating_depth - (yc - 0.5 * dy)) / dy, 0.0, 1.0) if p.heating_depth > 0.0 else 0.0 * yc
     heat = p.heating_rate * pattern[:, None, :] * mask[None, :, None]
     v0 = initial_vapor(p, yc).reshape(_bshape(UP, p.shape[UP]))
-    return {
+    aux = {
         "t0": jnp.asarray(t0, dtype=dtype),
         "v0": jnp.asarray(v0, dtype=dtype),
         "heat": jnp.asarray(heat, dtype=dtype),
         "inv_eig": laplacian_eigenvalues(p.shape, p.steps, p.periodic, dtype),
     }
+    if p.environment.has_inversion:   # Gamma_d - Gamma(y) per level (a linear profile: one number, in advect)
+        aux["stable"] = jnp.asarray(stratification(p, yc).reshape(_bshape(UP, p.shape[UP])), dtype=dtype)
+    return aux
 
 
 def initial_state(p: Params, dtype, wave=None):
@@ -317,7 +330,7 @@ def courant_sum(vel, p: Params, dt):
 # ---- phases ---------------------------------------------------------------------------------
 def advect(state, aux, p: Params):
     """Flux-form van Leer advection of theta', v, w and the velocity (sub-stepped), then the
-    theta' source -u_y (Gamma_d - Gamma_env) (the adiabatic cooling of eq. 7 relative to the
+    theta' source -u_y (Gamma_d - Gamma(y)) (the adiabatic cooling of eq. 7 relative to the
     environment).  Returns (state, number of sub-steps)."""
     cfd = _cfd(p)
     dt = p.dt
@@ -340,7 +353,8 @@ def advect(state, aux, p: Params):
     fields = (state["theta"], state["vapor"], state["cloud"], *vel0)
     theta, vapor, cloud, ux, uy, uz = lax.fori_loop(0, nsub, body, fields)
     uy_c = _to_center(vel0[UP], UP, p.periodic[UP])
-    theta = theta - dt * (p.dry_lapse_rate - p.lapse_rate) * uy_c
+    stable = aux["stable"] if "stable" in aux else p.dry_lapse_rate - p.environment.lapse_rate
+    theta = theta - dt * stable * uy_c
     return {**state, "ux": ux, "uy": uy, "uz": uz, "theta": theta, "vapor": vapor, "cloud": cloud}, nsub
 
 

@@ -44,6 +44,7 @@ from pbf_cuda.scene import Scene, SceneError, load_scene, scene_from_dict
 
 from .model import (BUDGET_TERMS, STATE_KEYS, advect, budget_terms, cell_centers, initial_state, make_aux,
                     params_from_scene, physics, pressure_project, step_with_budget)
+from . import model
 from .projection import _lower_face, relative_divergence
 
 __all__ = ["GridSimulation", "InstabilityError", "grid_shape", "PHASES"]
@@ -268,7 +269,7 @@ class GridSimulation:
         p = self.params
         st = {k: np.asarray(v, dtype=np.float64) for k, v in self._state.items()}
         xc, yc, zc = cell_centers(p)
-        t0 = (p.ground_temperature - p.lapse_rate * yc)[None, :, None]
+        t0 = model.environment_temperature(p, yc)[None, :, None]
         T = t0 + st["theta"]
         vel = np.stack([_center_np(st[k], a, p.periodic[a]) for a, k in enumerate(("ux", "uy", "uz"))], axis=-1)
         return {"temperature": T, "potential_temperature": T + p.dry_lapse_rate * yc[None, :, None],
@@ -465,8 +466,10 @@ def _diagnostics(state, aux, p):
     speed = jnp.max(jnp.stack([jnp.max(jnp.abs(u)) for u in vel]))
     column_cloudy = jnp.any(cloudy, axis=1)
     rho = p.rest_density
-    stable = p.dry_lapse_rate - p.lapse_rate
-    ape_scale = 0.5 / stable if stable > 0.0 else 0.0
+    # available potential energy k_b theta'^2 / (2 T0 (Gamma_d - Gamma(y))) of the stable levels
+    stable = model.stratification(p, (np.arange(p.shape[1]) + 0.5) * steps[1])
+    ape_scale = jnp.asarray(np.where(stable > 0.0, 0.5 / np.where(stable > 0.0, stable, 1.0), 0.0)[None, :, None],
+                            theta.dtype)
     ke = 0.5 * rho * vol * sum(jnp.sum(0.5 * (u * u + _lower_face(u, a, p.periodic[a]) ** 2))
                                for a, u in enumerate(vel))
     return {
@@ -474,7 +477,7 @@ def _diagnostics(state, aux, p):
         "mass": jnp.asarray(rho * vol * w.size, w.dtype),
         "mass_centre_height": jnp.mean(ycol),
         "kinetic_energy": ke,
-        "potential_energy": rho * vol * jnp.sum(p.buoyancy / t0 * theta * theta) * ape_scale,
+        "potential_energy": rho * vol * jnp.sum(p.buoyancy / t0 * theta * theta * ape_scale),
         "total_water": jnp.sum(v + w) * vol * rho,    # kg (rest density times kg/kg times m^3)
         "total_vapor": jnp.sum(v) * vol,
         "total_cloud": jnp.sum(w) * vol,

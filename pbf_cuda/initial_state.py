@@ -84,10 +84,12 @@ def fluid_particles(scene: Scene) -> dict[str, np.ndarray]:
 
 def environment_state(scene: Scene, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Initial temperature T0(y) (K) and vapor (kg/kg) of section 5."""
+    from .environment import EnvironmentProfile, vapor_ratio
     a = scene.atmosphere
     T = scene.environment_temperature(y)
     reference = T if a.vapor_profile == "relative" else np.full_like(y, a.ground_temperature)
-    return T, a.initial_vapor_ratio * scene.saturation(reference)
+    k = vapor_ratio(EnvironmentProfile.of(a), a.initial_vapor_ratio, a.vapor_ratio_above, y)
+    return T, k * scene.saturation(reference)
 
 
 def wave_velocity(scene: Scene, pos: np.ndarray) -> np.ndarray:

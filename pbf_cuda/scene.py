@@ -165,7 +165,16 @@ class PBF:
 class Atmosphere:
     """Cloud physics of section 4. Present in a scene file => thermodynamics on."""
     ground_temperature: float = _spec(300.0, 150.0, 400.0, "K", "environment temperature T0 at y = 0")
-    lapse_rate: float = _spec(6.5e-3, -0.05, 0.05, "K/m", "environment lapse rate: T0(y) = T_ground - lapse_rate*y")
+    lapse_rate: float = _spec(6.5e-3, -0.05, 0.05, "K/m", "environment lapse rate: T0(y) = T_ground - lapse_rate*y "
+                                                          "(below the inversion, if there is one)")
+    # A capping inversion (pbf_cuda/environment.py; off at inversion_height = 0, the paper's linear profile).
+    inversion_height: float = _spec(0.0, 0.0, 1e5, "m", "base z_i of a capping inversion (0: none)")
+    inversion_depth: float = _spec(200.0, 1.0, 1e5, "m", "thickness of the inversion layer, over which T0 rises "
+                                                          "by inversion_strength")
+    inversion_strength: float = _spec(0.0, 0.0, 100.0, "K", "warming of T0 across the inversion layer")
+    lapse_rate_above: float = _spec(6.5e-3, -0.05, 0.05, "K/m", "environment lapse rate above the inversion layer")
+    vapor_ratio_above: float = _spec(-1.0, -1.0, 2.0, "", "k_v above the inversion layer (the dry free troposphere), "
+                                                          "blended linearly across it; -1: initial_vapor_ratio")
     initial_vapor_ratio: float = _spec(0.5, 0.0, 2.0, "", "k_v of section 5: v = k_v A exp(B/(T+C))")
     vapor_profile: str = _spec("relative", choices=VAPOR_PROFILES,
                                doc="'relative': k_v times saturation at T0(y); 'uniform': k_v times saturation at the ground")
@@ -305,9 +314,9 @@ class Scene:
         return nx * ny * nz
 
     def environment_temperature(self, y):
-        """T0(y) in K, linear from the ground (section 4)."""
-        a = self.atmosphere
-        return a.ground_temperature - a.lapse_rate * y
+        """T0(y) in K (section 4; linear from the ground, or with a capping inversion: pbf_cuda/environment.py)."""
+        from .environment import EnvironmentProfile
+        return EnvironmentProfile.of(self.atmosphere).temperature(y)
 
     def saturation(self, temperature):
         """A exp(B/(T+C)) in kg/kg (eq. 10 without the total-water cap)."""
@@ -449,11 +458,17 @@ def _cross_checks(scene: Scene, source: str):
                              f"atmosphere.latent_heat (Q), which must then be > 0 (got {scene.atmosphere.latent_heat})")
     if scene.atmosphere is not None:
         a = scene.atmosphere
-        for y in (0.0, size[1]):
-            t = a.ground_temperature - a.lapse_rate * y
+        from .environment import EnvironmentProfile
+        profile = EnvironmentProfile.of(a)
+        for y in (0.0, size[1], *(k for k in profile.kinks if k < size[1])):
+            t = float(profile.temperature(y))
             if t + a.saturation_c <= 0.0 or t < 100.0:
+                what = f"atmosphere.lapse_rate = {a.lapse_rate} K/m"
+                if profile.has_inversion and y > a.inversion_height:
+                    what += (f", atmosphere.inversion_strength = {a.inversion_strength} K and "
+                             f"atmosphere.lapse_rate_above = {a.lapse_rate_above} K/m")
                 raise SceneError(
-                    f"{source}: atmosphere.lapse_rate = {a.lapse_rate} K/m gives T0 = {t:.1f} K at y = {y} m, "
+                    f"{source}: {what} give T0 = {t:.1f} K at y = {y} m, "
                     f"outside the saturation formula's range (T + C > 0, T >= 100 K)")
     if scene.pbf.gradient_correction and scene.pbf.projection != "velocity":
         raise SceneError(f"{source}: pbf.gradient_correction corrects the velocity projection's divergence; it needs "

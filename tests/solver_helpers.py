@@ -4,6 +4,11 @@ import pytest
 
 BACKENDS = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
 
+# A capping inversion's layer filling a box (pbf_cuda/environment.py): from 1 m up, T0 rises by 100 K over
+# 100 km, i.e. Gamma(y) = -1e-3 K/m, so the whole column has the inversion layer's stratification.
+INVERSION_EVERYWHERE = {"atmosphere.inversion_height": 1.0, "atmosphere.inversion_depth": 1e5,
+                        "atmosphere.inversion_strength": 100.0}
+
 
 def by_id(state: dict) -> dict:
     """State arrays reordered by particle id (the solver re-sorts particles every step)."""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from pbf_cuda import Simulation, load_scene, scene_from_dict
+from pbf_cuda.environment import EnvironmentProfile
 from pbf_cuda.noise import simplex2
 from solver_helpers import BACKENDS
 
@@ -112,16 +113,16 @@ def test_inviscid_shear_wave_and_taylor_green_vortex_never_gain_energy():
         assert ke.max() <= ke0 * (1 + 1e-6)
 
 
-def gravity_wave(modes_x, modes_y, periods, dt=5.0, steepness=None, backend="cpu"):
+def gravity_wave(modes_x, modes_y, periods, dt=5.0, steepness=None, backend="cpu", overrides=None):
     """The `stratified` scene's wave of one mode for `periods` periods: (kinetic + available potential energy
     per step, the measured period, the period of linear theory omega = N kx / |k|). With `steepness`, the peak
     vertical velocity is set so that the peak displacement zeta = w / omega has |k| zeta = steepness."""
     scene = load_scene("stratified").replace(**{"wave.modes_x": modes_x, "wave.modes_y": modes_y,
-                                                "time.dt": dt})
+                                                "time.dt": dt, **(overrides or {})})
     a = scene.atmosphere
     Lx, Ly = scene.domain.size[:2]
     kx, ky = 2 * math.pi * modes_x / Lx, math.pi * modes_y / Ly
-    n2 = a.buoyancy / a.ground_temperature * (a.dry_lapse_rate - a.lapse_rate)
+    n2 = a.buoyancy / a.ground_temperature * (a.dry_lapse_rate - float(EnvironmentProfile.of(a).lapse(Ly / 2)))
     omega = math.sqrt(n2) * kx / math.hypot(kx, ky)
     if steepness is not None:
         scene = scene.replace(**{"wave.amplitude": steepness * omega / math.hypot(kx, ky)})

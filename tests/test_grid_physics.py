@@ -10,7 +10,7 @@ pytest.importorskip("jax_cfd")
 import jax.numpy as jnp  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-from solver_helpers import cloud_base_of_layers, model_lcl  # noqa: E402
+from solver_helpers import INVERSION_EVERYWHERE, cloud_base_of_layers, model_lcl  # noqa: E402
 
 from grid_baseline import GridSimulation  # noqa: E402
 from pbf_cuda.scene import load_scene  # noqa: E402
@@ -185,11 +185,13 @@ def test_parcel_scene_rising_air_condenses_at_its_lcl():
 
 
 # ---- docs/design.md checks: internal gravity wave-----------------------------------------------------------
-def test_stratified_wave_frequency():
+@pytest.mark.parametrize("overrides", [{}, INVERSION_EVERYWHERE], ids=["linear", "inversion-layer"])
+def test_stratified_wave_frequency(overrides):
     """The stratified scene's mode psi = a sin(kx x) sin(ky y) oscillates at omega = N kx/|k|,
-    N^2 = (g/T)(Gamma_d - Gamma_env) (g = atmosphere.buoyancy, T the mean environment temperature).
-    omega is measured from the zero crossings of the vertical velocity's projection on the mode."""
-    sim = GridSimulation("stratified")
+    N^2 = (g/T)(Gamma_d - Gamma(y)) (g = atmosphere.buoyancy, T the mean environment temperature).
+    omega is measured from the zero crossings of the vertical velocity's projection on the mode. Also in
+    an inversion layer that fills the box (T0 rising 1 K/km: N 1.8 times the linear profile's)."""
+    sim = GridSimulation(load_scene("stratified").replace(**overrides))
     p = sim.params
     Lx, Ly = p.size[0], p.size[1]
     w = sim.scene.wave
@@ -213,7 +215,7 @@ def test_stratified_wave_frequency():
     crossings = t[k] + (t[k + 1] - t[k]) * a[k] / (a[k] - a[k + 1])
     assert len(crossings) >= 3
     omega = math.pi / np.mean(np.diff(crossings))
-    T = p.ground_temperature - p.lapse_rate * Ly / 2
-    N = math.sqrt(p.buoyancy / T * (p.dry_lapse_rate - p.lapse_rate))
+    T = float(p.environment.temperature(Ly / 2))
+    N = math.sqrt(p.buoyancy / T * (p.dry_lapse_rate - float(p.environment.lapse(Ly / 2))))
     expected = N * kx / math.hypot(kx, ky)
     assert abs(omega - expected) / expected < 0.10, (omega, expected)

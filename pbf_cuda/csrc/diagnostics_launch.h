@@ -32,7 +32,6 @@ struct BudgetTerms {
     const float* temperature;   // nullptr without thermodynamics
     const float* vapor;
     const float* cloud;
-    float ape_scale;            // 1 / (2 (Gamma_d - Gamma_env)) for a stable stratification, else 0
     bool with_heating;
     PBF_HD BudgetSums operator()(uint32_t i) const {
         Float4 p = pos[i];
@@ -50,7 +49,9 @@ struct BudgetTerms {
             if (with_heating) s.heat = m * a.heating(xyz(p), p.w);
             float T0 = a.environment_temperature(p.y);
             double dT = double(T) - T0;
-            s.ape = m * (a.buoyancy / T0) * dT * dT * ape_scale;
+            // available potential energy k_b dT^2 / (2 T0 (Gamma_d - Gamma(y))) of a stable layer, else 0
+            float stable = a.dry_lapse_rate - a.env.lapse(p.y);
+            if (stable > 0.0f) s.ape = m * (a.buoyancy / T0) * dT * dT * (0.5f / stable);
         }
         return s;
     }
@@ -60,10 +61,9 @@ struct BudgetTerms {
 // ground heating the particles receive there (with_heating).
 inline BudgetSums reduce_budget(const SolverData& d, const dvec<Float4>& positions, bool with_vel, bool with_heating) {
     const bool thermo = d.p.thermodynamics;
-    float stable = d.p.dry_lapse_rate - d.p.lapse_rate;
     BudgetTerms t{d.atm, raw(positions), with_vel ? raw(d.vel) : nullptr,
                   thermo ? raw(d.temperature) : nullptr, thermo ? raw(d.vapor) : nullptr,
-                  thermo ? raw(d.cloud) : nullptr, stable > 0.0f ? 0.5f / stable : 0.0f, with_heating};
+                  thermo ? raw(d.cloud) : nullptr, with_heating};
     return reduce_over(d.n, t, BudgetSums{0, 0, 0, 0, 0, 0, 0, 0}, BudgetAdd{});
 }
 
@@ -87,8 +87,7 @@ inline void record_budget(SolverData& d, const BudgetSums& start, const BudgetSu
     double M = end.m > 0 ? end.m : 1.0;
     b.heat_source = end.heat / M;
     b.heat_smoothing = smoothing_heat / M;
-    b.heat_adiabatic = (-double(d.p.dry_lapse_rate) * (end.my - start.my)
-                        + double(d.p.dry_lapse_rate - d.p.lapse_rate) * d.shift_my) / M;
+    b.heat_adiabatic = (-double(d.p.dry_lapse_rate) * (end.my - start.my) + d.shift_heat) / M;
     // Cloud water removed as rain (C3) released no heat: it is no part of the latent term.
     b.heat_latent = double(d.p.latent_heat) * (end.mw - start.mw + forcing.rain) / M;
     b.heat_relaxation = forcing.heat_relax / M;

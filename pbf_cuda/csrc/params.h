@@ -60,6 +60,11 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(bool, thermodynamics, "", false)                     /* the scene has an [atmosphere] section */             \
     S(float, ground_temperature, "atmosphere.ground_temperature", 300.0f)  /* K */                                 \
     S(float, lapse_rate, "atmosphere.lapse_rate", 6.5e-3f)                 /* environment lapse, K/m */            \
+    S(float, inversion_height, "atmosphere.inversion_height", 0.0f)        /* z_i, m; 0: none (environment.h) */   \
+    S(float, inversion_depth, "atmosphere.inversion_depth", 200.0f)        /* delta, m */                          \
+    S(float, inversion_strength, "atmosphere.inversion_strength", 0.0f)    /* dT across the inversion, K */        \
+    S(float, lapse_rate_above, "atmosphere.lapse_rate_above", 6.5e-3f)     /* Gamma_a above it, K/m */             \
+    S(float, vapor_ratio_above, "atmosphere.vapor_ratio_above", -1.0f)     /* k_v above it; < 0: as below */       \
     S(float, buoyancy, "atmosphere.buoyancy", 9.81f)                       /* k_b, m/s^2 (eq. 6) */                \
     S(float, cloud_gravity, "atmosphere.cloud_gravity", 9.81f)             /* k_g, m/s^2 per kg/kg (eq. 6) */      \
     S(float, dry_lapse_rate, "atmosphere.dry_lapse_rate", 9.8e-3f)         /* Gamma_d, K/m (eq. 7) */              \

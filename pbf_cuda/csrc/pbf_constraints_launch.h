@@ -145,14 +145,16 @@ struct KeepHeight {
     float* height;
     PBF_HD void operator()(uint32_t i) const { height[i] = pred[i].y; }
 };
-// shift = y(after) - y(before) of the density constraint; returns m shift (kg m).
+// shift = y(after) - y(before) of the density constraint; returns the heat its temperature change will book,
+// m (Gamma_d shift + T0(y) - T0(y - shift)) (kg K; AtmosphereParams::shift_change).
 struct VerticalShift {
+    AtmosphereParams a;
     const Float4* pred;
     float* shift;
     PBF_HD double operator()(uint32_t i) const {
         float dy = pred[i].y - shift[i];
         shift[i] = dy;
-        return double(pred[i].w) * dy;
+        return double(pred[i].w) * double(a.shift_change(pred[i].y, dy));
     }
 };
 
@@ -179,8 +181,9 @@ void solve_density(SolverData& d, const CellRanges& walls) {
                                           Double2Add{});
         parallel_for(d.n, RemoveVerticalShift{raw(d.pred), float((after.x - before.x) / before.y), d.grid.domain[1]});
     }
-    d.shift_my = keep_shift ? reduce_over(d.n, VerticalShift{raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>())
-                            : 0.0;
+    d.shift_heat = keep_shift ? reduce_over(d.n, VerticalShift{d.atm, raw(d.pred), raw(d.shift_y)}, 0.0,
+                                            thrust::plus<double>())
+                              : 0.0;
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).

@@ -11,7 +11,8 @@
 // which is antisymmetric in i, j, so sum_i m_i T_i is conserved exactly (the paper's form is not: it
 // updates T_i alone). In the bulk of a lattice this is the paper's update. Walls exchange nothing
 // (adiabatic walls). Temperature is smoothed as its anomaly T - T0(y) from the environment profile
-// (T0 linear in y, so T_i - T_j becomes T_i - T_j + lapse (y_i - y_j)): the resting atmosphere is a fixed
+// (T_i - T_j becomes T_i - T_j - (T0(y_i) - T0(y_j)), = T_i - T_j + lapse (y_i - y_j) for the paper's linear
+// profile; environment.h): the resting atmosphere is a fixed
 // point also next to the adiabatic walls, and within the pass sum m T0(y) is fixed, so sum m T is still
 // conserved exactly. Up to three fields (temperature, vapor, cloud) share one neighbour pass; values are
 // read from the input arrays and written to the output arrays (Jacobi).
@@ -25,6 +26,7 @@
 // sum m v stays exact, and sum_j c'_ij <= S_cap: no particle leaves its neighbourhood's range.
 #pragma once
 #include "common.h"
+#include "environment.h"
 #include "grid.h"
 #include "kernel_policy.h"
 #include "kernels.h"
@@ -76,7 +78,7 @@ struct SmoothScalars {
     CellRanges fluid;
     LevelRadii radii;
     SmoothingPair pair;       // beta0: kappa grad C_ii / |grad C_i|^2 of a full level-0 lattice (eq. 17), m^2
-    float lapse;              // environment lapse rate, K/m (temperature is smoothed as T - T0(y))
+    EnvironmentProfile env;   // T0(y) (temperature is smoothed as its anomaly T - T0(y))
     const float* weight_sum;  // S_i of the limiter; nullptr: no limiter
     SmoothingFields f;
     PBF_HD void operator()(uint32_t i) const {
@@ -93,7 +95,7 @@ struct SmoothScalars {
                 float s = fmaxf(s_i, weight_sum[j]);
                 if (s > kSmoothingWeightCap) c *= kSmoothingWeightCap / s;
             }
-            if (f.in[0]) dT[0] -= c * (vi[0] - f.in[0][j] + lapse * r.y);
+            if (f.in[0]) dT[0] -= c * (vi[0] - f.in[0][j] - env.change(xi.y, r.y));
             for (int k = 1; k < 3; ++k)
                 if (f.in[k]) dT[k] -= c * (vi[k] - f.in[k][j]);
         });

@@ -38,7 +38,7 @@ double smooth_fields(SolverData& d) {
         parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, pair, raw(d.float_tmp)});
         weight_sum = raw(d.float_tmp);
     }
-    parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.p.lapse_rate, weight_sum, sf});
+    parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.atm.env, weight_sum, sf});
     for (int k = 0; k < 3; ++k)
         if (d.p.smooth_fields[k]) fields[k]->swap(d.smooth_out[k]);
     d.clock.end(kPhaseSmoothing);

@@ -48,7 +48,7 @@ struct SolverData {
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
     dvec<float> shift_y;                     // the density constraint's vertical shift of each particle this step, m
-    double shift_my = 0.0;                   // its mass-weighted sum, kg m
+    double shift_heat = 0.0;                 // sum m shift_change of it (the heat it books), kg K
     dvec<float> grad_correction;             // L_i (symmetric 3x3, 6 floats per particle) of the projection's Jacobian
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)

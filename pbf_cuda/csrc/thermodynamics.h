@@ -4,7 +4,7 @@
 //   phase transition      dw/dt = -dv/dt = alpha (v - gamma)           (eq. 8-9)
 //                         gamma = min(A exp(B / (T + C)), v + w)      (eq. 10)
 //   latent heat           dT = Q dw                                    (eq. 11)
-//   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6)
+//   buoyancy and gravity  du_y/dt = k_b (T - T0(y)) / T0(y) - k_g w    (eq. 6; T0(y): environment.h)
 // Large-scale forcing of the cycling example (docs/cycling.md, eq. C1-C4; all off by default):
 //   time of day           S_e(t) = S_e f(t), f(t) = max(0, sin(2 pi t / P))            (C1)
 //   relaxation            dT/dt = -(T - T0(y)) / tau,  dv/dt = -(v - v0(y)) / tau      (C2)
@@ -23,12 +23,13 @@
 // alpha dt, and total water v + w is conserved by construction (v = q - w).
 #pragma once
 #include "common.h"
+#include "environment.h"
 #include "noise.h"
 
 namespace pbf {
 
 struct AtmosphereParams {
-    float ground_temperature, lapse_rate;
+    EnvironmentProfile env;   // T0(y)
     float buoyancy, cloud_gravity, dry_lapse_rate, latent_heat, phase_rate;
     float sat_a, sat_b, sat_c;
     float heating_rate, heating_depth, noise_frequency, noise_amplitude, noise_offset[2];
@@ -42,9 +43,17 @@ struct AtmosphereParams {
     float auto_decay;         // exp(-k_auto dt); 1 without autoconversion
     float auto_threshold;     // q_c0, kg/kg
     float vapor_ratio;        // k_v of section 5
+    float vapor_ratio_above;  // k_v above a capping inversion (blended across its layer); < 0: k_v
     bool vapor_relative;      // v0 follows T0(y) (true) or the ground temperature (false)
 
-    PBF_HD float environment_temperature(float y) const { return ground_temperature - lapse_rate * y; }
+    PBF_HD float environment_temperature(float y) const { return env.temperature(y); }
+    // Temperature change of a density-constraint shift dy that ends at y (pbf.shift_keeps_anomaly): eq. 7 took
+    // -Gamma_d dy over the whole displacement; the shift is no rise of the air, so it keeps the anomaly
+    // T - T0 instead: + Gamma_d dy + T0(y) - T0(y - dy), i.e. (Gamma_d - Gamma) dy for the linear profile.
+    PBF_HD float shift_change(float y, float dy) const {
+        if (!env.has_inversion()) return (dry_lapse_rate - env.lapse_rate) * dy;
+        return dry_lapse_rate * dy + env.change(y, dy);
+    }
     PBF_HD float saturation(float T) const { return sat_a * expf(sat_b / (T + sat_c)); }
     // Relative heating S / S_e at ground position (x, z) (eq. 5).
     PBF_HD float heating_pattern(float x, float z) const {
@@ -80,7 +89,9 @@ struct AtmosphereParams {
     }
     // Initial (and relaxation target) vapor v0(y), kg/kg (section 5).
     PBF_HD float initial_vapor(float y) const {
-        return vapor_ratio * saturation(vapor_relative ? environment_temperature(y) : ground_temperature);
+        float k = vapor_ratio;
+        if (vapor_ratio_above >= 0.0f) k += (vapor_ratio_above - vapor_ratio) * env.inversion_fraction(y);
+        return k * saturation(vapor_relative ? environment_temperature(y) : env.ground_temperature);
     }
 };
 
@@ -137,7 +148,7 @@ struct CloudDynamics {
         ForcingSums f{0.0, 0.0, 0.0};
         T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
-        if (shift_y) T += (a.dry_lapse_rate - a.lapse_rate) * shift_y[i];                  // shift: -Gamma_env dy
+        if (shift_y) T += a.shift_change(x.y, shift_y[i]);                                 // shift: dT0 = -Gamma dy
         float T0 = a.environment_temperature(x.y);
         if (a.relax_decay < 1.0f) {                                                        // C2
             float T_new = T0 + (T - T0) * a.relax_decay;

@@ -10,10 +10,14 @@
 namespace pbf {
 namespace PBF_BACKEND_NS {
 
+inline EnvironmentProfile make_environment_profile(const Params& p) {
+    return EnvironmentProfile{p.ground_temperature, p.lapse_rate,       p.inversion_height,
+                              p.inversion_depth,    p.inversion_strength, p.lapse_rate_above};
+}
+
 inline AtmosphereParams make_atmosphere_params(const Params& p) {
     AtmosphereParams atm{};
-    atm.ground_temperature = p.ground_temperature;
-    atm.lapse_rate = p.lapse_rate;
+    atm.env = make_environment_profile(p);
     atm.buoyancy = p.buoyancy;
     atm.cloud_gravity = p.cloud_gravity;
     atm.dry_lapse_rate = p.dry_lapse_rate;
@@ -39,6 +43,7 @@ inline AtmosphereParams make_atmosphere_params(const Params& p) {
     atm.auto_decay = p.autoconversion_rate > 0.0f ? float(std::exp(-double(p.autoconversion_rate) * p.dt)) : 1.0f;
     atm.auto_threshold = p.autoconversion_threshold;
     atm.vapor_ratio = p.initial_vapor_ratio;
+    atm.vapor_ratio_above = p.vapor_ratio_above;
     atm.vapor_relative = p.vapor_relative;
     return atm;
 }
