@@ -111,7 +111,9 @@ def main():
     parser.add_argument("--seeds", default="0")
     parser.add_argument("--confirm", default="", help="candidates also run with --confirm-seeds (comma separated)")
     parser.add_argument("--confirm-seeds", default="1,2")
-    parser.add_argument("--particles", type=int, default=20_000)
+    parser.add_argument("--particles", type=int, default=20_000, help="0: the scene's own spacing (paper scale)")
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--base", default="growing", help="the scene the candidates override")
     parser.add_argument("--every", type=int, default=25, help="steps between diagnostic rows")
     parser.add_argument("--runs-root", type=Path, default=Path("/tmp/shallow/runs"))
     parser.add_argument("--out", type=Path, default=Path("/tmp/shallow"))
@@ -129,7 +131,7 @@ def main():
         sys.exit(f"unknown candidates {unknown}; known: {', '.join(table)}")
     seeds = [int(s) for s in args.seeds.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
-    ctx = StudyContext(out=args.out / "study", scale=SCALES["cpu"], runs_root=args.runs_root, backend="cpu",
+    ctx = StudyContext(out=args.out / "study", scale=SCALES["cpu"], runs_root=args.runs_root, backend=args.backend,
                        quiet=False, scheduler="inline")
     confirm = [n.strip() for n in args.confirm.split(",") if n.strip()]
     unknown = [n for n in confirm if n not in table]
@@ -138,9 +140,9 @@ def main():
     plan = [(n, seeds) for n in names] + [(n, [int(s) for s in args.confirm_seeds.split(",")]) for n in confirm]
     rows, series = [], []
     for name, run_seeds in plan:
-        scene = scale_scene(load_scene("growing", **table[name]), args.particles)
+        scene = scale_scene(load_scene(args.base, **table[name]), args.particles or None)
         for seed in run_seeds:
-            spec = runs.RunSpec("particles", scene, backend="cpu", seed=seed, keep_snapshots=1,
+            spec = runs.RunSpec("particles", scene, backend=args.backend, seed=seed, keep_snapshots=1,
                                 snapshot_every=args.every)
             t0 = time.perf_counter()
             (result,) = ctx.run_parallel([spec], f"{name} seed {seed}")

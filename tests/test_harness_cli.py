@@ -29,7 +29,7 @@ def invoke(*args):
     (["run", "growing", "--backend", "tpu"], "Invalid value for '--backend': 'tpu' is not one of"),
     (["run", "growing", "--particles", "5"], "--particles 5: "),
     (["demo", "--scale", "huge"], "Invalid value for '--scale': 'huge' is not one of 'auto', 'smoke', 'cpu', 'gpu'"),
-    (["demo", "--only", "table1,plots"], "'plots': allowed table1, scaling, compare, sweep, stress, renders"),
+    (["demo", "--only", "table1,plots"], "'plots': allowed table1, scaling, compare, shallow-cumulus, sweep, stress, renders"),
     (["demo", "--workers", "0"], "Invalid value for '--workers'"),
     (["compare", "growing", "--seeds", "3"], "Invalid value for '--seeds': 3 is not in the range 5<=x<=1000"),
     (["compare", "nosuch"], "unknown scene 'nosuch'"),

@@ -137,10 +137,11 @@ def write_synthetic_study(out, renders=True):
                   "final_cover": [0.85, 1.0], "vanished_and_returned": [False, False],
                   "density_error_mean": [0.02, 0.07], "max_speed": [13.0, 48.0], "device": DEVICE,
                   "commit": COMMIT}).to_csv(data / "constant_gravity.csv", index=False)
+    write_synthetic_shallow_cumulus(data)
     if renders:
         import matplotlib.pyplot as plt
         for name in ("clouds_particles", "clouds_volume", "figure1_unsmoothed", "figure1_smoothed",
-                     "figure3_shape_energy"):
+                     "figure3_shape_energy", "shallow_cumulus_volume", "shallow_cumulus_particles"):
             fig, ax = plt.subplots(figsize=(2, 1.5))
             ax.imshow(np.random.default_rng(0).random((8, 8)))
             fig.savefig(data / "renders" / f"{name}.png")
@@ -150,6 +151,29 @@ def write_synthetic_study(out, renders=True):
         frames[0].save(data / "renders" / "clouds_animation.gif", save_all=True, append_images=frames[1:])
         frames[0].save(data / "renders" / "clouds_strip.png")
     return out
+
+
+def write_synthetic_shallow_cumulus(data):
+    """The shallow-cumulus study's CSVs (bench.studies.shallow_cumulus) for two seeds, from its own les_table."""
+    from bench.studies.shallow_cumulus import les_table
+    rows = [{"seed": str(s), "particles": 8000, "spacing_m": 100.0, "stable": True, "step": 500, "cover_mean": c,
+             "cover_min": c - 0.05, "cover_max": c + 0.05, "in_shallow_range": 1.0, "onset_s": 400.0,
+             "cloud_base_m": 1100.0, "cloud_top_m": 1700.0, "lwp_g_m2": 4.0, "clouds_end": 9, "cf_peak": c / 1.2,
+             "z_cf_peak_m": 1500.0, "cover_to_peak": 1.2, "z_cf_peak_over_top": 0.88} for s, c in ((0, 0.12), (1, 0.16))]
+    summary = pd.DataFrame(rows)
+    mean = {"seed": "mean", "stable": True, **summary.drop(columns=["seed", "stable"]).mean().to_dict()}
+    summary = pd.concat([summary, pd.DataFrame([mean])], ignore_index=True).assign(device=DEVICE, commit=COMMIT)
+    summary.to_csv(data / "shallow_cumulus.csv", index=False)
+    les_table(summary).assign(device=DEVICE, commit=COMMIT).to_csv(data / "shallow_cumulus_les.csv", index=False)
+    t = np.arange(0.0, 1001.0, 100.0)
+    pd.concat([pd.DataFrame({"time_s": t, "cloud_cover": np.clip((t - 300) / 2000, 0, None) + 0.02 * s,
+                             "cloud_base": 1100.0, "cloud_top": 1700.0, "lwp_mean": 0.004, "n_objects": 9,
+                             "seed": s}) for s in (0, 1)]).assign(device=DEVICE, commit=COMMIT).to_csv(
+        data / "shallow_cumulus_series.csv", index=False)
+    z = np.arange(50.0, 3200.0, 100.0)
+    pd.concat([pd.DataFrame({"z": z, "cloud_fraction": 0.1 * np.exp(-((z - 1500) / 200) ** 2), "seed": s})
+               for s in (0, 1)]).assign(device=DEVICE, commit=COMMIT).to_csv(
+        data / "shallow_cumulus_profile.csv", index=False)
 
 
 class _Collector(HTMLParser):
@@ -194,14 +218,14 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
     assert expected == ["environment", "summary", "table1", "phases", "scaling", "benchmark_history", "peers", "adaptive",
-                        "compare", "sweep",
+                        "compare", "shallow_cumulus", "sweep",
                         "adaptive_pareto", "stress", "renders", "figure1", "figure3"]
     # self-contained: only in-page anchors and embedded images; no path of this machine
     assert not re.search(r"https?://", page)
     assert all(r.startswith("#") or r.startswith(("data:image/png;base64,", "data:image/gif;base64,"))
                for r in parser.refs), parser.refs
     assert str(out) not in page and str(out.parent) not in page
-    assert parser.images == 18   # every figure and render of the synthetic study, the 2-D map and the animation
+    assert parser.images == 21   # every figure and render of the synthetic study, the 2-D map and the animation
     sections = _sections(page)
     for sid in expected:
         assert "not run in this study" not in sections[sid], sid
@@ -454,7 +478,7 @@ def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):
 def test_every_figure_opens_full_size(full_report):
     page = full_report[1]
     figures = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)
-    assert len(figures) == page.count("<img ") == 18
+    assert len(figures) == page.count("<img ") == 21
     assert all(fid == href for fid, href in figures)
     assert len({fid for fid, _ in figures}) == len(figures)          # one anchor per figure
     assert "figure.zoom:target" in page
@@ -568,6 +592,13 @@ def test_peer_section_gives_the_ratio_per_thread_count(full_report):
     sec = _sections(full_report[1])["peers"]
     assert "cloudpbf / SPlisHSPlasH" in sec and "1.35" in sec       # 5.48e5 / 4.06e5
     assert ">GPU<" in sec                                            # threads 0: the GPU row
+
+
+def test_shallow_cumulus_section_shows_the_statistics_beside_the_les_cases_and_the_renders(full_report):
+    sec = _sections(full_report[1])["shallow_cumulus"]
+    assert "BOMEX" in sec and "ARM" in sec and "Siebesma et al. 2003" in sec
+    assert "cover / peak" in sec and "LWP (g/m²)" in sec
+    assert sec.count("<img") == 3          # the cover and profile plot, the volume and the particle render
 
 
 def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(tmp_path, full_report):

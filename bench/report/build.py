@@ -66,6 +66,7 @@ COMMANDS = {
     "adaptive_cost": "cloudpbf adaptive-cost --spacing 45 --out {out}/data/adaptive_cost.csv",
     "constant_gravity": "cloudpbf constant-gravity --out {out}/data/constant_gravity.csv",
     "compare": "cloudpbf compare growing --out {out}",
+    "shallow_cumulus": "cloudpbf shallow-cumulus --out {out}",
     "sweep": "cloudpbf sweep --out {out}",
     "adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}",
     "stress": "cloudpbf stress --out {out}",
@@ -815,6 +816,42 @@ def _cycling(inp: Inputs, sec: Section) -> None:
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
     _compare(inp, sec, env)
     _cycling(inp, sec)
+
+
+def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
+    """The shallow_cumulus study (bench.studies.shallow_cumulus): statistics beside the LES cases, renders."""
+    from bench.studies.shallow_cumulus import LES_CASES, SHALLOW_COVER
+    summary, path = inp.csv("shallow_cumulus")
+    if summary is None:
+        _missing(sec, "the shallow-cumulus study (shallow_cumulus.csv)", "shallow_cumulus", inp.out)
+        return
+    sec.add("text", "growing under a capping inversion (scene shallow_cumulus, docs/validation.md "
+                    "\"Shallow cumulus\"): per seed, statistics over the last half of the run. "
+            + _provenance(summary, env=env))
+    cols = {"seed": "seed", "particles": "particles", "cover_mean": "cover (mean)", "cover_max": "cover (max)",
+            "in_shallow_range": "snapshots in 0.1-0.4", "cf_peak": "cloud-fraction peak",
+            "z_cf_peak_m": "peak height (m)", "cover_to_peak": "cover / peak", "cloud_base_m": "base (m)",
+            "cloud_top_m": "top (m)", "lwp_g_m2": "LWP (g/m²)", "clouds_end": "clouds at the end"}
+    shown = summary[[c for c in cols if c in summary.columns]].rename(columns=cols)
+    sec.add("table", _table(shown), caption=f"{path.name}: one row per seed and their mean.")
+    les, lpath = inp.csv("shallow_cumulus_les")
+    if les is not None:
+        keep = ["case", "metric", "lo", "hi", "scene_mean", "scene_seed_min", "scene_seed_max", "inside", "note",
+                "source"]
+        sec.add("table", _table(les[[c for c in keep if c in les.columns]]), caption=(
+            f"{lpath.name}: the published cases' numbers (from the papers' text) beside the scene's seed mean "
+            "and seed range; inside: the mean lies in the case's range."))
+    series, _ = inp.csv("shallow_cumulus_series")
+    profile, _ = inp.csv("shallow_cumulus_profile")
+    if series is not None and profile is not None:
+        bomex = next(c for c in LES_CASES if c["case"] == "BOMEX" and c["metric"] == "cover")
+        sec.add("image", plots.shallow_cumulus_plot(series, profile, SHALLOW_COVER, (bomex["lo"], bomex["hi"])),
+                caption="Cover against time (shaded: the LES ranges) and the time-mean cloud-fraction profile.")
+    _render_blocks(inp, sec, [
+        ("shallow_cumulus_volume", "seed 0 at the end: the cloud water deposited on the analysis grid, volume "
+                                   "rendered"),
+        ("shallow_cumulus_particles", "the same state as particles with w > 1e-5 kg/kg, opacity rising with w"),
+    ])
 
 
 SWEEP_HIDDEN = ("device", "commit", "run_dir")

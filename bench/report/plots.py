@@ -540,3 +540,30 @@ def convergence_plot(sweep: pd.DataFrame) -> str | None:
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     return to_data_uri(fig)
+
+
+# ------------------------------------------------------------------------------------------
+# shallow cumulus (bench.studies.shallow_cumulus)
+# ------------------------------------------------------------------------------------------
+def shallow_cumulus_plot(series: pd.DataFrame, profile: pd.DataFrame, cover_range: Sequence[float],
+                         bomex_cover: Sequence[float]) -> str:
+    """Cover against time per seed with the LES cover ranges shaded, and the time-mean cloud-fraction
+    profile per seed (heights in m)."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.0))
+    left.axhspan(*cover_range, color="0.85", label=f"shallow-cumulus LES {cover_range[0]:g}-{cover_range[1]:g}")
+    left.axhspan(*bomex_cover, color="#c6dbef", label=f"BOMEX {bomex_cover[0]:g}-{bomex_cover[1]:g}")
+    for i, (seed, g) in enumerate(series.groupby("seed")):
+        left.plot(g["time_s"], g["cloud_cover"], color=f"C{i}", label=f"seed {seed}")
+    left.set_xlabel("time (s)")
+    left.set_ylabel("cloud cover")
+    left.set_ylim(0, 1)
+    left.legend(fontsize=7)
+    left.grid(True, alpha=0.3)
+    for i, (seed, g) in enumerate(profile.groupby("seed")):
+        right.plot(g["cloud_fraction"], g["z"], color=f"C{i}", label=f"seed {seed}")
+    right.set_xlabel("cloud fraction (time mean, last half)")
+    right.set_ylabel("height z (m)")
+    right.grid(True, alpha=0.3)
+    right.legend(fontsize=7)
+    fig.tight_layout()
+    return to_data_uri(fig)

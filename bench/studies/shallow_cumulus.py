@@ -1,0 +1,250 @@
+"""Shallow cumulus: the `shallow_cumulus` scene (growing under a capping inversion, docs/validation.md
+"Shallow cumulus") over several noise seeds, its cloud statistics beside two published shallow-cumulus LES
+cases, and renders of its clouds.
+
+Every run is analysed by bench.statistics (particles deposited on the analysis grid, one cell per particle
+spacing). Per seed, over the second half of the run (when the clouds have formed; `ANALYSIS_FROM` of the run
+length): the mean and range of the cloud cover, the fraction of the snapshots with cover in the LES range
+0.1-0.4, the time-mean cloud-fraction profile (its peak, the peak's height, cover / peak), the cloudy-period
+means of cloud base, top and mean liquid water path, and the separate clouds at the end (3-D objects of
+face-connected cloudy cells). Outputs in OUT/data:
+
+* shallow_cumulus.csv: one row per seed and one `mean` row, the metrics above, device, commit
+* shallow_cumulus_series.csv: seed, time_s, cloud_cover, cloud_base, cloud_top, lwp_mean, n_objects
+* shallow_cumulus_profile.csv: seed, z, cloud_fraction (time mean over the analysis window)
+* shallow_cumulus_les.csv: the LES cases' numbers (LES_CASES), each metric beside the scene's seed mean
+* shallow_cumulus_state.npz: seed 0's last state, compact (cloudy particles, a tenth of the clear ones, the
+  deposited cloud water), from which `--render-only` draws where the runs' machine cannot
+* renders/shallow_cumulus_volume.png, renders/shallow_cumulus_particles.png: that state, volume rendered and
+  as particles
+"""
+from __future__ import annotations
+
+import math
+import sys
+from typing import Annotated, Optional
+
+import numpy as np
+import pandas as pd
+import typer
+
+from bench import render, runs, statistics
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleOpt,
+                              ScaleName, SchedulerOpt, WorkersOpt, study_context)
+from bench.statistics import CLOUDY_COVER
+from bench.studies.context import StudyContext
+from bench.studies.registry import ReportSection, Study, register
+from bench.studies.scales import scale_scene
+from pbf_cuda.scene import load_scene
+
+SCENE = "shallow_cumulus"
+ANALYSIS_FROM = 0.5          # the analysis window: the last half of the run
+SHALLOW_COVER = (0.1, 0.4)   # cover of shallow-cumulus LES cases (below)
+SERIES_COLUMNS = ("cloud_cover", "cloud_base", "cloud_top", "lwp_mean", "n_objects")
+STATE_FILE = "shallow_cumulus_state.npz"   # seed 0's last state, compact (save_state), for the renders
+
+# Published shallow-cumulus LES cases, numbers from the papers' text (docs/validation.md, "Shallow cumulus").
+# lo/hi: the range the case gives; NaN where it gives none.
+LES_CASES = (
+    {"case": "BOMEX", "metric": "cover", "lo": 0.08, "hi": 0.17,
+     "note": "total cover over the models, last 3 h (ensemble mean 0.13)",
+     "source": "Siebesma et al. 2003, J. Atmos. Sci. 60, 1201-1219"},
+    {"case": "BOMEX", "metric": "cover_to_peak", "lo": 1.3, "hi": 3.7,
+     "note": "total cover / maximum of the cloud-fraction profile (about 2.2): clouds of many tops share one base",
+     "source": "Siebesma et al. 2003"},
+    {"case": "BOMEX", "metric": "z_cf_peak_over_top", "lo": 0.0, "hi": 0.5,
+     "note": "the cloud-fraction maximum sits near cloud base (about 500 m; tops up to the inversion at 1500 m)",
+     "source": "Siebesma et al. 2003"},
+    {"case": "ARM", "metric": "cover", "lo": 0.0, "hi": 0.4,
+     "note": "cover peaking just under 0.3 (about 0.4 in a run with a less stable start)",
+     "source": "Brown et al. 2002, Q. J. R. Meteorol. Soc. 128, 1075-1093"},
+    {"case": "ARM", "metric": "cloud_base_m", "lo": 700.0, "hi": 1200.0,
+     "note": "cloud base rising from about 700 m to 1200 m through the afternoon", "source": "Brown et al. 2002"},
+    {"case": "ARM", "metric": "cloud_top_m", "lo": 0.0, "hi": 3000.0,
+     "note": "tops of 2500-3000 m at most", "source": "Brown et al. 2002"},
+)
+
+
+def shallow_specs(ctx: StudyContext, seeds: int) -> list[runs.RunSpec]:
+    """One run of the scene per seed, at the context's particle count, every state of the last step kept."""
+    scene = scale_scene(load_scene(SCENE), ctx.scale.particles, ctx.scale.step_fraction)
+    every = max(1, scene.time.steps // 20)
+    return [runs.RunSpec("particles", scene, backend=ctx.backend, seed=seed, keep_snapshots=1, snapshot_every=every)
+            for seed in range(seeds)]
+
+
+def analyse(result: runs.RunResult, scene) -> tuple[dict, pd.DataFrame, pd.DataFrame]:
+    """(metrics, series, time-mean profile) of one run (see the module's docstring)."""
+    row = {"stable": bool(result.stable), "step": int(result.step)}
+    stats = result.stats().sort_values("step") if result.stable else pd.DataFrame()
+    if not len(stats):
+        return row, pd.DataFrame(), pd.DataFrame()
+    t_end = float(stats["time_s"].max())
+    late = stats[stats["time_s"] >= ANALYSIS_FROM * t_end]
+    cover = late["cloud_cover"].to_numpy(float)
+    cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
+    row.update(cover_mean=float(cover.mean()), cover_min=float(cover.min()), cover_max=float(cover.max()),
+               in_shallow_range=float(((cover >= SHALLOW_COVER[0]) & (cover <= SHALLOW_COVER[1])).mean()),
+               onset_s=float(cloudy["time_s"].iloc[0]) if len(cloudy) else math.nan,
+               cloud_base_m=float(cloudy["cloud_base"].mean()) if len(cloudy) else math.nan,
+               cloud_top_m=float(cloudy["cloud_top"].mean()) if len(cloudy) else math.nan,
+               lwp_g_m2=1e3 * float(cloudy["lwp_mean"].mean()) if len(cloudy) else math.nan,
+               clouds_end=int(stats["n_objects"].iloc[-1]))
+    prof = result.profiles()
+    profile = pd.DataFrame()
+    if len(prof):
+        window = prof[prof["time_s"] >= ANALYSIS_FROM * t_end]
+        profile = window.groupby("z", as_index=False)["cloud_fraction"].mean()
+        i = int(np.argmax(profile["cloud_fraction"].to_numpy()))
+        peak = float(profile["cloud_fraction"].iloc[i])
+        row.update(cf_peak=peak, z_cf_peak_m=float(profile["z"].iloc[i]) if peak > 0 else math.nan,
+                   cover_to_peak=row["cover_mean"] / peak if peak > 0 else math.nan)
+        top = row["cloud_top_m"]
+        row["z_cf_peak_over_top"] = row["z_cf_peak_m"] / top if top and math.isfinite(top) else math.nan
+    series = stats[["time_s", *SERIES_COLUMNS]].copy()
+    return row, series, profile
+
+
+def les_table(summary: pd.DataFrame) -> pd.DataFrame:
+    """LES_CASES with the scene's seed mean (and seed range) of each metric and whether it lies in the case's
+    range."""
+    mean = summary[summary["seed"] == "mean"].iloc[0] if len(summary) else None
+    seeds = summary[summary["seed"] != "mean"]
+    rows = []
+    for case in LES_CASES:
+        m = case["metric"]
+        value = float(mean[m]) if mean is not None and m in mean and pd.notna(mean[m]) else math.nan
+        lo_s = float(seeds[m].min()) if m in seeds and len(seeds) else math.nan
+        hi_s = float(seeds[m].max()) if m in seeds and len(seeds) else math.nan
+        rows.append({**case, "scene_mean": value, "scene_seed_min": lo_s, "scene_seed_max": hi_s,
+                     "inside": bool(case["lo"] <= value <= case["hi"]) if math.isfinite(value) else False})
+    return pd.DataFrame(rows)
+
+
+def save_state(result: runs.RunResult, scene, path) -> bool:
+    """The run's last state, compact, for renders wherever pyvista is (the GPU machine may have none): every
+    cloudy particle and a tenth of the clear ones (position, cloud; bench.render.compact_particles) and the
+    cloud water deposited on the analysis grid. False (and nothing written) where the run stored no state."""
+    try:
+        state = result.snapshot()
+    except FileNotFoundError:
+        return False
+    grid = statistics.deposit_state(state, scene)
+    compact = render.compact_particles(state)
+    np.savez_compressed(path, **{f"particle_{k}": v for k, v in compact.items()}, grid_cloud=grid["cloud"],
+                        grid_cell_size=np.asarray(grid["cell_size"]), grid_origin=np.asarray(grid["origin"]),
+                        time_s=np.asarray(state["time_s"]), particles=np.asarray(len(state["cloud"])))
+    return True
+
+
+def draw(state_path, scene, out_dir) -> dict:
+    """Volume and particle renders of a saved state (save_state); a NAME.unavailable.txt note where none can
+    be drawn."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    volume, particles = out_dir / "shallow_cumulus_volume.png", out_dir / "shallow_cumulus_particles.png"
+    if not state_path.is_file():
+        for png in (volume, particles):
+            runs.atomic_write_text(render.note_path(png), f"no stored state to draw ({state_path.name} is missing)\n")
+        return {volume.name: None, particles.name: None}
+    with np.load(state_path) as z:
+        saved = {k: z[k] for k in z.files}
+    state = {k[len("particle_"):]: v for k, v in saved.items() if k.startswith("particle_")}
+    state["time_s"] = saved["time_s"]
+    title = f"{SCENE}, {int(saved['particles']):,} particles, t = {float(saved['time_s']):.0f} s"
+    return {volume.name: render.render_or_note(render.render_volume, volume, saved["grid_cloud"],
+                                               tuple(saved["grid_cell_size"]), origin=tuple(saved["grid_origin"])),
+            particles.name: render.render_or_note(render.render_particles, particles, state, scene,
+                                                  color_by="cloud", title=title)}
+
+
+def run_shallow_cumulus(ctx: StudyContext, seeds: int | None = None) -> dict[str, pd.DataFrame]:
+    """Run the seeds (cached), analyse them, write the CSVs and renders; returns the frames by file stem."""
+    seeds = seeds or ctx.scale.shallow_seeds
+    specs = shallow_specs(ctx, seeds)
+    results = ctx.run_parallel(specs, "shallow_cumulus")
+    device, commit = results[0].info.get("device", ""), ctx.commit
+    rows, series, profiles = [], [], []
+    for spec, res in zip(specs, results):
+        row, ser, prof = analyse(res, spec.scene)
+        rows.append({"seed": str(spec.seed), "particles": spec.scene.estimated_particles(),
+                     "spacing_m": spec.scene.particles.spacing, **row})
+        if len(ser):
+            series.append(ser.assign(seed=spec.seed))
+        if len(prof):
+            profiles.append(prof.assign(seed=spec.seed))
+    summary = pd.DataFrame(rows)
+    numeric = summary.drop(columns=["seed", "stable"]).apply(pd.to_numeric, errors="coerce")
+    mean = {"seed": "mean", "stable": bool(summary["stable"].all()), **numeric.mean().to_dict()}
+    summary = pd.concat([summary, pd.DataFrame([mean])], ignore_index=True).assign(device=device, commit=commit)
+    frames = {
+        "shallow_cumulus": summary,
+        "shallow_cumulus_series": (pd.concat(series, ignore_index=True) if series else pd.DataFrame())
+        .assign(device=device, commit=commit),
+        "shallow_cumulus_profile": (pd.concat(profiles, ignore_index=True) if profiles else pd.DataFrame())
+        .assign(device=device, commit=commit),
+        "shallow_cumulus_les": les_table(summary).assign(device=device, commit=commit),
+    }
+    for stem, frame in frames.items():
+        runs.write_csv(frame, ctx.data / f"{stem}.csv")
+    state_path = ctx.data / STATE_FILE
+    if not save_state(results[0], specs[0].scene, state_path):
+        state_path.unlink(missing_ok=True)
+    render_state(ctx.data, specs[0].scene, ctx.say)
+    return frames
+
+
+def render_state(data_dir, scene, say=print) -> dict:
+    """Draw OUT/data/renders/shallow_cumulus_*.png from OUT/data/shallow_cumulus_state.npz."""
+    done = draw(data_dir / STATE_FILE, scene, data_dir / "renders")
+    for name, path in done.items():
+        say(f"shallow_cumulus: {name}: {'written' if path else 'unavailable (see the note beside it)'}")
+    return done
+
+
+def shallow_cumulus_command(
+    seeds: Annotated[Optional[int], typer.Option(min=1, max=1000, help="noise seeds (default: the scale's)")] = None,
+    render_only: Annotated[bool, typer.Option(
+        "--render-only", help="run nothing: draw the renders from OUT/data/shallow_cumulus_state.npz")] = False,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
+) -> None:
+    """Shallow cumulus under a capping inversion: cover, cloud-fraction profile and LWP beside BOMEX and ARM."""
+    if render_only:
+        data = out / "data"
+        if not (data / STATE_FILE).is_file():
+            raise typer.BadParameter(f"'{data / STATE_FILE}': no saved state to draw (run the study first)",
+                                     param_hint="'--out'")
+        render_state(data, load_scene(SCENE), typer.echo)
+        return
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
+        frames = run_shallow_cumulus(ctx, seeds)
+    cols = ["seed", "particles", "cover_mean", "in_shallow_range", "cf_peak", "z_cf_peak_m", "cover_to_peak",
+            "cloud_base_m", "cloud_top_m", "lwp_g_m2", "clouds_end"]
+    summary = frames["shallow_cumulus"]
+    typer.echo(summary[[c for c in cols if c in summary]].to_string(index=False))
+    les = frames["shallow_cumulus_les"]
+    typer.echo(les[["case", "metric", "lo", "hi", "scene_mean", "inside"]].to_string(index=False))
+    typer.echo(f"wrote {ctx.data / 'shallow_cumulus.csv'}, shallow_cumulus_series.csv, shallow_cumulus_profile.csv, "
+               "shallow_cumulus_les.csv, renders/shallow_cumulus_*.png")
+
+
+register(Study("shallow-cumulus", order=37, run=lambda ctx, scene: run_shallow_cumulus(ctx),
+               sections=("shallow_cumulus",),
+               report=(ReportSection("shallow_cumulus", "Shallow cumulus under an inversion",
+                                     "bench.report.build:_shallow_cumulus", 57),),
+               outputs=("shallow_cumulus.csv", "shallow_cumulus_series.csv", "shallow_cumulus_profile.csv",
+                        "shallow_cumulus_les.csv", STATE_FILE, "renders/shallow_cumulus_volume.png",
+                        "renders/shallow_cumulus_particles.png"),
+               scale={"shallow_seeds": {"smoke": 1, "cpu": 2, "gpu": 3}},
+               command=shallow_cumulus_command))
+
+
+def main(argv=None) -> int:
+    """``python -m bench.studies.shallow_cumulus ARGS`` is ``cloudpbf shallow-cumulus ARGS``."""
+    from bench.cli import main as cli_main
+    return cli_main(["shallow-cumulus", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
