@@ -236,7 +236,7 @@ register(Study("shallow-cumulus", order=37, run=lambda ctx, scene: run_shallow_c
                outputs=("shallow_cumulus.csv", "shallow_cumulus_series.csv", "shallow_cumulus_profile.csv",
                         "shallow_cumulus_les.csv", STATE_FILE, "renders/shallow_cumulus_volume.png",
                         "renders/shallow_cumulus_particles.png"),
-               scale={"shallow_seeds": {"smoke": 1, "cpu": 2, "gpu": 3}},
+               scale={"shallow_seeds": {"smoke": 1, "cpu": 2, "gpu": 5}},
                command=shallow_cumulus_command))
 
 
