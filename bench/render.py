@@ -66,6 +66,9 @@ def _cloud_colormap():
 
 
 _CLOUD_CMAP = _cloud_colormap()  # grey thin cloud, white dense cloud
+# the shaded volume's colours (the lighting darkens them): light grey thin cloud, white dense cloud
+_LIT_CLOUD_CMAP = __import__("matplotlib.colors", fromlist=["LinearSegmentedColormap"]).LinearSegmentedColormap \
+    .from_list("lit_cloud", ["#c4ccd4", "#eef1f4", "#ffffff"])
 _WINDOW_CLASSES = ("vtkEGLRenderWindow", "vtkOSOpenGLRenderWindow")
 _PROBE = r"""
 import sys
@@ -326,11 +329,14 @@ def render_particles(state: Mapping, scene, out_png, color_by: str = "cloud", vi
 
 
 def render_volume(grid_w, cell_size, out_png, origin=(0.0, 0.0, 0.0), threshold: float = CLOUD_THRESHOLD,
-                  window_size: Sequence[int] = (1200, 900), title: str | None = None) -> Path:
+                  window_size: Sequence[int] = (1200, 900), title: str | None = None, upsample: int = 2) -> Path:
     """Volume render of a cloud field w (kg/kg) on an (nx, ny, nz) grid of cell centres.
 
     ``cell_size`` (3,) m, ``origin`` (3,) m the grid corner.  Cells with
-    w <= threshold are transparent; opacity and whiteness rise with w.
+    w <= threshold are transparent; opacity and whiteness rise with w.  The field is
+    interpolated (trilinear, ``upsample`` points per cell and axis, so no value leaves
+    the cells' range) and lit by a sun from above (shaded ray casting): cloud tops
+    bright, bases and the shadowed sides grey, as in the paper's Fig. 5.
     """
     w = np.asarray(grid_w, dtype=np.float64)
     if w.ndim != 3:
@@ -341,6 +347,11 @@ def render_volume(grid_w, cell_size, out_png, origin=(0.0, 0.0, 0.0), threshold:
         raise ValueError(f"cell_size = {cell_size!r}: every entry must be > 0 m")
     pv = _pyvista()
     size = dx * np.array(w.shape)
+    shape = w.shape
+    if upsample > 1 and w.max() > threshold:
+        from scipy.ndimage import zoom
+        w = np.clip(zoom(w, upsample, order=1, grid_mode=True, mode="nearest"), 0.0, None)
+        dx = dx * np.array(shape) / np.array(w.shape)
     grid = pv.ImageData(dimensions=w.shape, spacing=tuple(dx), origin=tuple(org + dx / 2))
     grid.point_data["cloud"] = w.ravel(order="F")
     top = float(w.max())
@@ -354,16 +365,21 @@ def render_volume(grid_w, cell_size, out_png, origin=(0.0, 0.0, 0.0), threshold:
         # opacity transfer over [0, top]; 64 samples (pyvista 0.46 drops a table of exactly n_colors)
         ramp = np.linspace(0.0, top, 64)
         opacity = np.where(ramp > threshold, 0.15 + 0.85 * np.sqrt(ramp / top), 0.0)
-        plotter.add_volume(grid, scalars="cloud", clim=(0.0, top), opacity=opacity,
-                           cmap=_CLOUD_CMAP, opacity_unit_distance=float(dx.max()),
-                           show_scalar_bar=True, shade=False,
-                           scalar_bar_args=dict(title="cloud w (kg/kg)", color="black", vertical=True,
-                                                position_x=0.88, position_y=0.15, height=0.7, width=0.05))
-        cloudy = int((w > threshold).sum())
-        note = f"{cloudy:,} of {w.size:,} cells cloudy"
+        volume = plotter.add_volume(grid, scalars="cloud", clim=(0.0, top), opacity=opacity,
+                                    cmap=_LIT_CLOUD_CMAP, opacity_unit_distance=float(dx.max()),
+                                    show_scalar_bar=True, shade=True, ambient=0.8, diffuse=0.55, specular=0.0,
+                                    scalar_bar_args=dict(title="cloud w (kg/kg)", color="black", vertical=True,
+                                                         position_x=0.88, position_y=0.15, height=0.7,
+                                                         width=0.05))
+        volume.mapper.SetSampleDistance(float(dx.min()) / 2)
+        centre = org + size / 2       # a sun high above, on the camera's side, beside the default light kit
+        plotter.add_light(pv.Light(position=tuple(centre + np.array([1.0, 4.0, 1.5]) * size.max()),
+                                   focal_point=tuple(centre), intensity=0.6, light_type="scene light"))
+        cloudy = int((np.asarray(grid_w) > threshold).sum())
+        note = f"{cloudy:,} of {int(np.prod(shape)):,} cells cloudy"
     else:
         note = f"no cloud: w <= {threshold:g} everywhere"
-    plotter.add_text(title or f"deposited cloud field {w.shape[0]}x{w.shape[1]}x{w.shape[2]}: {note}",
+    plotter.add_text(title or f"deposited cloud field {shape[0]}x{shape[1]}x{shape[2]}: {note}",
                      position="upper_left", font_size=10, color="black")
     _camera(plotter, size, "iso", window_size[0] / window_size[1], lo=org)
     return _finish(plotter, out_png)

@@ -844,7 +844,7 @@ def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
     series, _ = inp.csv("shallow_cumulus_series")
     profile, _ = inp.csv("shallow_cumulus_profile")
     if series is not None and profile is not None:
-        bomex = next(c for c in LES_CASES if c["case"] == "BOMEX" and c["metric"] == "cover")
+        bomex = next(c for c in LES_CASES if c["case"] == "BOMEX" and c["metric"] == "cover_mean")
         sec.add("image", plots.shallow_cumulus_plot(series, profile, SHALLOW_COVER, (bomex["lo"], bomex["hi"])),
                 caption="Cover against time (shaded: the LES ranges) and the time-mean cloud-fraction profile.")
     _render_blocks(inp, sec, [
