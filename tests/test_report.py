@@ -594,6 +594,20 @@ def test_peer_section_gives_the_ratio_per_thread_count(full_report):
     assert ">GPU<" in sec                                            # threads 0: the GPU row
 
 
+def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there(tmp_path, full_report):
+    import shutil
+    out = tmp_path / "study"
+    shutil.copytree(full_report[0] / "data", out / "data")
+    before = _sections(build_report(out).read_text())["compare"]
+    rows = [{"solver": m, "method": m, "parameter": p, "resolution_m": r, "stable": True, "cover_mean": 0.6,
+             "lwp_mean": 0.3, "cloud_base_mean": 1100.0, "cloud_top_mean": 2700.0, "device": DEVICE, "commit": COMMIT}
+            for m, p in (("particles", "spacing"), ("grid", "cells")) for r in (68.0, 54.0, 34.0)]
+    pd.DataFrame(rows).to_csv(out / "data" / "convergence.csv", index=False)
+    after = _sections(build_report(out).read_text())["compare"]
+    assert after.count("<img") == before.count("<img") + 1
+    assert "Convergence in the full domain (convergence.csv" in after and COMMIT in after
+
+
 def test_shallow_cumulus_section_shows_the_statistics_beside_the_les_cases_and_the_renders(full_report):
     sec = _sections(full_report[1])["shallow_cumulus"]
     assert "BOMEX" in sec and "ARM" in sec and "Siebesma et al. 2003" in sec

@@ -813,8 +813,24 @@ def _cycling(inp: Inputs, sec: Section) -> None:
             "with w > 1e-5 kg/kg are drawn, the grid's cloud water as a volume."))
 
 
+def _convergence(inp: Inputs, sec: Section) -> None:
+    """Both solvers against resolution in the scene's own domain (scripts/probe_convergence.py --out
+    convergence.csv; docs/validation.md, "Convergence of both solvers with resolution")."""
+    conv, path = inp.csv("convergence")
+    if conv is None:
+        return
+    figure = plots.convergence_plot(conv)
+    if figure is None:
+        return
+    sec.add("image", figure, caption=(
+        f"Convergence in the full domain ({path.name}, {_provenance(conv)}): each solver's cloud statistics "
+        "(time means over the cloudy period, seed 0) against its resolution, particle spacing or grid cell size "
+        "(finer to the right); where the lines approach each other, the solvers converge toward one answer."))
+
+
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
     _compare(inp, sec, env)
+    _convergence(inp, sec)
     _cycling(inp, sec)
 
 
