@@ -615,6 +615,18 @@ def test_shallow_cumulus_section_shows_the_statistics_beside_the_les_cases_and_t
     assert sec.count("<img") == 3          # the cover and profile plot, the volume and the particle render
 
 
+def test_shallow_cumulus_section_sets_the_grid_beside_the_particles_of_the_same_seeds(tmp_path, full_report):
+    import shutil
+    out = tmp_path / "study"
+    shutil.copytree(full_report[0] / "data", out / "data")
+    pd.DataFrame([{"solver": "grid", "seed": "0", "cells": 94, "cover_mean": 0.10, "cloud_base_m": 1150.0},
+                  {"solver": "grid", "seed": "mean", "cells": 94, "cover_mean": 0.10, "cloud_base_m": 1150.0}]
+                 ).assign(device=DEVICE, commit=COMMIT).to_csv(out / "data" / "shallow_cumulus_grid.csv", index=False)
+    sec = _sections(build_report(out).read_text())["shallow_cumulus"]
+    assert "particles (seeds 0)" in sec and "grid, 94³ cells (seeds 0)" in sec
+    assert "<td>0.12</td>" in sec and "<td>0.1</td>" in sec      # seed 0's particle cover beside the grid's
+
+
 def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(tmp_path, full_report):
     """Example 2's renders: the modes that have any render become rows (peak | clearest moment after it) of one
     figure; a mode with no render is left out, a missing cell is drawn as 'not rendered'."""

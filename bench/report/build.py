@@ -857,6 +857,17 @@ def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
         sec.add("table", _table(les[[c for c in keep if c in les.columns]]), caption=(
             f"{lpath.name}: the published cases' numbers (from the papers' text) beside the scene's seed mean "
             "and seed range; inside: the mean lies in the case's range."))
+    grid, gpath = inp.csv("shallow_cumulus_grid")
+    if grid is not None:
+        seeds = [str(x) for x in grid["seed"] if str(x) != "mean"]
+        particles = summary[summary["seed"].astype(str).isin(seeds)]
+        keep = [c for c in cols if c not in ("seed", "particles") and c in grid.columns and c in particles.columns]
+        rows = [{"solver": f"particles (seeds {', '.join(seeds)})", **particles[keep].mean(numeric_only=True)},
+                {"solver": f"grid, {int(grid['cells'].iloc[0])}³ cells (seeds {', '.join(seeds)})",
+                 **grid[grid["seed"].astype(str) != "mean"][keep].mean(numeric_only=True)}]
+        sec.add("table", _table(pd.DataFrame(rows).rename(columns=cols)), caption=(
+            f"The grid baseline on the same scene and seeds ({gpath.name}, scripts/probe_shallow_grid.py, "
+            f"{_provenance(grid)}), analysed as the particle runs are: seed means."))
     series, _ = inp.csv("shallow_cumulus_series")
     profile, _ = inp.csv("shallow_cumulus_profile")
     if series is not None and profile is not None:
