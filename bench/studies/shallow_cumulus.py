@@ -55,6 +55,10 @@ LES_CASES = (
     {"case": "BOMEX", "metric": "z_cf_peak_over_top", "lo": 0.0, "hi": 0.5,
      "note": "the cloud-fraction maximum sits near cloud base (about 500 m; tops up to the inversion at 1500 m)",
      "source": "Siebesma et al. 2003"},
+    {"case": "BOMEX (one CM1 run)", "metric": "lwp_g_m2", "lo": 1.95, "hi": 14.16,
+     "note": "domain-mean LWP of one CM1 r21.1 run of the case (6.4 km, 100 m grid): 6.35 g/m2 over the last 3 h, "
+             "frame means 1.95-14.16; the intercomparison plots LWP (its Fig. 2b) but gives no number in its text",
+     "source": "a public CM1 run report of the BOMEX case (Siebesma et al. 2003 set-up)"},
     {"case": "ARM", "metric": "cover_mean", "lo": 0.0, "hi": 0.4,
      "note": "cover peaking just under 0.3 (about 0.4 in a run with a less stable start)",
      "source": "Brown et al. 2002, Q. J. R. Meteorol. Soc. 128, 1075-1093"},
