@@ -31,10 +31,10 @@ double smooth_fields(SolverData& d) {
     }
     CellRanges fluid = d.fluid_ranges(d.pred);
     SmoothingPair pair{d.p.h0, d.cp.inv_rest_density, d.p.smoothing_beta, d.p.smoothing_epsilon};
-    // The limiter's pass where the weights can reach 1 (smoothing.h): mixed levels, or kappa above 0.5
-    // (a lattice's S_i is about 0.9 kappa); elsewhere it would change nothing and is skipped.
+    // The limiter's pass where the weights can pass its cap S_cap (smoothing.h): mixed levels, or kappa above
+    // S_cap (a lattice's S_i is about 0.9 kappa < kappa, so at kappa <= S_cap it would scale no pair and is skipped).
     const float* weight_sum = nullptr;
-    if (std::is_same<Policy, AdaptivePolicy>::value || d.p.kappa > 0.5f) {
+    if (std::is_same<Policy, AdaptivePolicy>::value || d.p.kappa > kSmoothingWeightCap) {
         parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, pair, raw(d.float_tmp)});
         weight_sum = raw(d.float_tmp);
     }
