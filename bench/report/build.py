@@ -836,7 +836,6 @@ def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
     """The shallow_cumulus study (bench.studies.shallow_cumulus): statistics beside the LES cases, renders."""
-    from bench.studies.shallow_cumulus import LES_CASES, SHALLOW_COVER
     summary, path = inp.csv("shallow_cumulus")
     if summary is None:
         _missing(sec, "the shallow-cumulus study (shallow_cumulus.csv)", "shallow_cumulus", inp.out)
@@ -871,9 +870,11 @@ def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
     series, _ = inp.csv("shallow_cumulus_series")
     profile, _ = inp.csv("shallow_cumulus_profile")
     if series is not None and profile is not None:
-        bomex = next(c for c in LES_CASES if c["case"] == "BOMEX" and c["metric"] == "cover_mean")
-        sec.add("image", plots.shallow_cumulus_plot(series, profile, SHALLOW_COVER, (bomex["lo"], bomex["hi"])),
-                caption="Cover against time (shaded: the LES ranges) and the time-mean cloud-fraction profile.")
+        covers = les[les["metric"] == "cover_mean"] if les is not None else pd.DataFrame()
+        bands = [(str(r.case), float(r.lo), float(r.hi)) for r in covers.itertuples()]
+        sec.add("image", plots.shallow_cumulus_plot(series, profile, bands),
+                caption="Cover against time (shaded: the LES cases' cover ranges) and the time-mean cloud-fraction "
+                        "profile.")
     _render_blocks(inp, sec, [
         ("shallow_cumulus_volume", "seed 0 at the end: the cloud water deposited on the analysis grid, volume "
                                    "rendered"),

@@ -545,13 +545,12 @@ def convergence_plot(sweep: pd.DataFrame) -> str | None:
 # ------------------------------------------------------------------------------------------
 # shallow cumulus (bench.studies.shallow_cumulus)
 # ------------------------------------------------------------------------------------------
-def shallow_cumulus_plot(series: pd.DataFrame, profile: pd.DataFrame, cover_range: Sequence[float],
-                         bomex_cover: Sequence[float]) -> str:
-    """Cover against time per seed with the LES cover ranges shaded, and the time-mean cloud-fraction
-    profile per seed (heights in m)."""
+def shallow_cumulus_plot(series: pd.DataFrame, profile: pd.DataFrame, bands: Sequence[tuple] = ()) -> str:
+    """Cover against time per seed with the LES cases' cover ranges shaded (bands: (case, lo, hi)), and the
+    time-mean cloud-fraction profile per seed (heights in m)."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.0))
-    left.axhspan(*cover_range, color="0.85", label=f"shallow-cumulus LES {cover_range[0]:g}-{cover_range[1]:g}")
-    left.axhspan(*bomex_cover, color="#c6dbef", label=f"BOMEX {bomex_cover[0]:g}-{bomex_cover[1]:g}")
+    for (case, lo, hi), shade in zip(sorted(bands, key=lambda b: b[1] - b[2]), ("0.85", "#c6dbef", "#d9f0d3")):
+        left.axhspan(lo, hi, color=shade, label=f"{case} {lo:g}-{hi:g}")
     for i, (seed, g) in enumerate(series.groupby("seed")):
         left.plot(g["time_s"], g["cloud_cover"], color=f"C{i}", label=f"seed {seed}")
     left.set_xlabel("time (s)")
