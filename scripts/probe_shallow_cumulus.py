@@ -4,10 +4,16 @@ between them, cover 0.1-0.4) instead of its overcast box (cover 0.99 at 1000 s)?
     python scripts/probe_shallow_cumulus.py [--candidates baseline,L4,...] [--seeds 0] [--particles 20000]
     python scripts/probe_shallow_cumulus.py --candidates baseline,L3_rh90 --confirm L3_rh90 --confirm-seeds 1,2
     python scripts/probe_shallow_cumulus.py --list
+    python scripts/probe_shallow_cumulus.py --backend cuda --particles 0 --candidates L3_rh85_a3 \
+        --extra '{"capped": {"atmosphere.inversion_height": 1600.0, ...}}'     # the paper's scale on a GPU
 
-Runs `growing` (or a candidate's overrides of it) scaled with bench.studies.scales.scale_scene to --particles
-(default 20k: 118 m spacing; 50k: 87 m, the CPU scale) in the full 3.2 km domain (heating layer thickened with
-the heat flux kept), particle solver on the CPU, seed 0 (--seeds; --confirm reruns candidates with --confirm-seeds),
+The 14 candidates behind the shipped `shallow_cumulus` scene, and their covers at the paper's scale, are in
+docs/validation.md ("Shallow cumulus").
+
+Runs `growing` (--base: another scene; or a candidate's overrides of it) scaled with
+bench.studies.scales.scale_scene to --particles (default 20k: 118 m spacing; 50k: 87 m, the CPU scale; 0: the
+scene's own spacing) in the full 3.2 km domain (heating layer thickened with the heat flux kept), particle solver
+on --backend (default the CPU), seed 0 (--seeds; --confirm reruns candidates with --confirm-seeds),
 500 steps of 2 s, diagnostics every `--every` steps on the default deposit grid (one cell per particle
 spacing).  For each run it prints one CSV row: cover at the end, its max, its time mean over the cloudy period
 (cover > 1%) and the fraction of the cloudy snapshots with cover in [0.1, 0.4]; cloudy-period means of cloud base,
