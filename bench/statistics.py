@@ -78,6 +78,19 @@ CLOUD_MEANS = (("cloud_base", "cloud_base"), ("cloud_top", "cloud_top"), ("cover
 """(name, diagnostics column) of the statistics averaged over a cloudy period (base, top in m; cover, a
 fraction; mean LWP in kg/m^2): particles_vs_grid.csv's metrics, the sweep's <name>_mean columns."""
 
+
+def cloudy_period_means(stats: pd.DataFrame) -> dict:
+    """{<name>_mean: ...} of CLOUD_MEANS: time means of a run's diagnostics rows over its cloudy period (cover
+    above CLOUDY_COVER); NaN without any cloudy row or without the column."""
+    out = {f"{name}_mean": math.nan for name, _ in CLOUD_MEANS}
+    if not len(stats) or "cloud_cover" not in stats:
+        return out
+    cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
+    for name, column in CLOUD_MEANS:
+        if len(cloudy) and column in cloudy:
+            out[f"{name}_mean"] = float(cloudy[column].mean())
+    return out
+
 _DEFAULT_PERIODIC = (True, False, True)
 _CHUNK_ENTRIES = 1 << 20  # particle x stencil entries per task (~50 MB of temporaries)
 

@@ -7,7 +7,7 @@ Runs `shallow_cumulus` in the grid baseline (jax; its default device) at --cells
 particle spacing of the scene, 34 m), one run per seed (the seed shifts the heating pattern as it does for the
 particles), and analyses each run as the study analyses the particle runs (bench.studies.shallow_cumulus.analyse:
 cover, cloud-fraction profile, base, top, LWP, clouds over the last half of the run). Prints one CSV row per seed
-and their mean; --out also writes them."""
+and their mean (with_seed_mean, as the study's); --out also writes them."""
 import argparse
 import sys
 from pathlib import Path
@@ -17,7 +17,7 @@ import pandas as pd
 from bench import runs
 from bench.studies.context import StudyContext
 from bench.studies.scales import SCALES
-from bench.studies.shallow_cumulus import SCENE, analyse
+from bench.studies.shallow_cumulus import SCENE, analyse, with_seed_mean
 from pbf_cuda import load_scene
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -36,11 +36,7 @@ for spec, res in zip(specs, ctx.run_parallel(specs, "shallow grid")):
     row, _, _ = analyse(res, spec.scene)
     rows.append({"solver": "grid", "seed": str(spec.seed), "cells": args.cells, **row,
                  "device": res.info.get("device", ""), "commit": ctx.commit})
-frame = pd.DataFrame(rows)
-numeric = frame.drop(columns=["solver", "seed", "stable", "device", "commit"]).apply(pd.to_numeric, errors="coerce")
-frame = pd.concat([frame, pd.DataFrame([{"solver": "grid", "seed": "mean", **numeric.mean().to_dict(),
-                                         "device": frame["device"].iloc[0], "commit": frame["commit"].iloc[0]}])],
-                  ignore_index=True)
+frame = with_seed_mean(pd.DataFrame(rows))
 frame.to_csv(sys.stdout, index=False, float_format="%.4g")
 if args.out is not None:
     runs.write_csv(frame, args.out)

@@ -10,6 +10,28 @@ INVERSION_EVERYWHERE = {"atmosphere.inversion_height": 1.0, "atmosphere.inversio
                         "atmosphere.inversion_strength": 100.0}
 
 
+def atmosphere_at_rest(overrides: dict, jitter: float = 5.0, backend: str = "cpu"):
+    """The `stratified` box at rest in its environment (T = T0(y), no wave) with `overrides`, its particles moved
+    from the lattice by up to `jitter` m (so that the density constraint shifts them): (statistics at the start,
+    after 1 step, after 10 steps; the temperature anomaly T - T0(y) at the end, K)."""
+    from pbf_cuda import Simulation, load_scene
+    scene = load_scene("stratified").replace(**{"wave.amplitude": 0.0, **overrides})
+    st = Simulation(scene, backend="cpu").state()
+    rng = np.random.default_rng(1)
+    p = st["position"] + rng.uniform(-jitter, jitter, st["position"].shape).astype(np.float32)
+    p[:, 1] = np.clip(p[:, 1], 1.0, scene.domain.size[1] - 1.0)
+    st["position"] = p
+    st["temperature"] = scene.environment_temperature(p[:, 1]).astype(np.float32)
+    sim = Simulation.from_arrays(scene, st, backend=backend)
+    out = [sim.stats()]
+    sim.step(1)
+    out.append(sim.stats())
+    sim.step(9)
+    out.append(sim.stats())
+    end = sim.state()
+    return out, end["temperature"].astype(np.float64) - scene.environment_temperature(end["position"][:, 1])
+
+
 def by_id(state: dict) -> dict:
     """State arrays reordered by particle id (the solver re-sorts particles every step)."""
     order = np.argsort(state["id"], kind="stable")

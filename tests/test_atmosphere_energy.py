@@ -13,7 +13,7 @@ import pytest
 from pbf_cuda import Simulation, load_scene, scene_from_dict
 from pbf_cuda.environment import EnvironmentProfile
 from pbf_cuda.noise import simplex2
-from solver_helpers import BACKENDS
+from solver_helpers import BACKENDS, atmosphere_at_rest
 
 
 def cellular_scene(dt, **overrides):
@@ -200,23 +200,9 @@ def test_gradient_correction_without_the_velocity_projection_is_refused_by_name(
 
 
 def settling_atmosphere(keeps_anomaly, backend="cpu"):
-    """The stratified box at rest in its environment (T = T0(y), no wave) on a jittered particle set, so the
-    density constraint shifts particles; (statistics at the start, after 1 step, after 10 steps)."""
-    scene = load_scene("stratified").replace(**{"wave.amplitude": 0.0, "pbf.shift_keeps_anomaly": keeps_anomaly})
-    st = Simulation(scene, backend="cpu").state()
-    rng = np.random.default_rng(1)
-    p = st["position"] + rng.uniform(-5.0, 5.0, st["position"].shape).astype(np.float32)
-    p[:, 1] = np.clip(p[:, 1], 1.0, scene.domain.size[1] - 1.0)
-    a = scene.atmosphere
-    st["position"] = p
-    st["temperature"] = (a.ground_temperature - a.lapse_rate * p[:, 1]).astype(np.float32)
-    sim = Simulation.from_arrays(scene, st, backend=backend)
-    out = [sim.stats()]
-    sim.step(1)
-    out.append(sim.stats())
-    sim.step(9)
-    out.append(sim.stats())
-    return out
+    """The stratified box at rest on a jittered particle set (solver_helpers.atmosphere_at_rest), with or
+    without pbf.shift_keeps_anomaly: (statistics at the start, after 1 step, after 10 steps)."""
+    return atmosphere_at_rest({"pbf.shift_keeps_anomaly": keeps_anomaly}, backend=backend)[0]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from pbf_cuda import Simulation, load_scene
 from pbf_cuda.environment import EnvironmentProfile, vapor_ratio
 from pbf_cuda.scene import SceneError
-from solver_helpers import BACKENDS, INVERSION_EVERYWHERE
+from solver_helpers import BACKENDS, INVERSION_EVERYWHERE, atmosphere_at_rest
 
 profiles = st.builds(EnvironmentProfile, ground_temperature=st.floats(250.0, 320.0),
                      lapse_rate=st.floats(-0.01, 0.0098), inversion_height=st.floats(10.0, 3000.0),
@@ -63,29 +63,6 @@ def test_vapor_ratio_is_the_boundary_layers_below_and_the_free_tropospheres_abov
     np.testing.assert_array_equal(vapor_ratio(profile, below, -1.0, y), below)   # -1: the same above
 
 
-def atmosphere_at_rest(backend, jitter, kappa):
-    """The stratified box (1000 m) with a capping inversion at 500-650 m, at rest in its environment, its
-    particles moved from the lattice by up to `jitter` m (so that the density constraint shifts them),
-    smoothing at kappa: statistics at the start, after 1 and after 10 steps, and the temperature anomaly
-    T - T0(y) at the end (K)."""
-    scene = load_scene("stratified").replace(**{"wave.amplitude": 0.0, "smoothing.kappa": kappa, **CAPPED})
-    st_ = Simulation(scene, backend="cpu").state()
-    rng = np.random.default_rng(1)
-    p = st_["position"] + rng.uniform(-jitter, jitter, st_["position"].shape).astype(np.float32)
-    p[:, 1] = np.clip(p[:, 1], 1.0, scene.domain.size[1] - 1.0)
-    st_["position"] = p
-    st_["temperature"] = scene.environment_temperature(p[:, 1]).astype(np.float32)
-    sim = Simulation.from_arrays(scene, st_, backend=backend)
-    out = [sim.stats()]
-    sim.step(1)
-    out.append(sim.stats())
-    sim.step(9)
-    out.append(sim.stats())
-    end = sim.state()
-    anomaly = end["temperature"].astype(np.float64) - scene.environment_temperature(end["position"][:, 1])
-    return out, anomaly
-
-
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("jitter, kappa, energy", [(5.0, 0.0, 10.0), (0.0, 0.3, 200.0)])
 def test_capped_atmosphere_at_rest_stays_at_rest_and_closes_its_heat_budget(backend, jitter, kappa, energy):
@@ -98,7 +75,8 @@ def test_capped_atmosphere_at_rest_stays_at_rest_and_closes_its_heat_budget(back
     # next to the walls (measured, CPU: 55 J after 3 steps, 87 J with the linear profile). Jittered AND
     # smoothed air is no fixed point with either profile: the smoothing runs on the shifted positions before
     # the cloud dynamics books the shift's temperature change (1.4e4 J with the inversion, 1.6e4 J linear).
-    run, anomaly = atmosphere_at_rest(backend, jitter, kappa)
+    # the stratified box (1000 m) with the inversion at 500-650 m, at rest in its environment
+    run, anomaly = atmosphere_at_rest({"smoothing.kappa": kappa, **CAPPED}, jitter, backend)
     assert run[0]["potential_energy"] < 0.1
     assert run[1]["potential_energy"] < energy and run[2]["kinetic_energy"] < energy
     assert np.abs(anomaly).max() < (1e-3 if kappa == 0.0 else 2e-2)

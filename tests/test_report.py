@@ -155,14 +155,12 @@ def write_synthetic_study(out, renders=True):
 
 def write_synthetic_shallow_cumulus(data):
     """The shallow-cumulus study's CSVs (bench.studies.shallow_cumulus) for two seeds, from its own les_table."""
-    from bench.studies.shallow_cumulus import les_table
+    from bench.studies.shallow_cumulus import les_table, with_seed_mean
     rows = [{"seed": str(s), "particles": 8000, "spacing_m": 100.0, "stable": True, "step": 500, "cover_mean": c,
              "cover_min": c - 0.05, "cover_max": c + 0.05, "in_shallow_range": 1.0, "onset_s": 400.0,
              "cloud_base_m": 1100.0, "cloud_top_m": 1700.0, "lwp_g_m2": 4.0, "clouds_end": 9, "cf_peak": c / 1.2,
              "z_cf_peak_m": 1500.0, "cover_to_peak": 1.2, "z_cf_peak_over_top": 0.88} for s, c in ((0, 0.12), (1, 0.16))]
-    summary = pd.DataFrame(rows)
-    mean = {"seed": "mean", "stable": True, **summary.drop(columns=["seed", "stable"]).mean().to_dict()}
-    summary = pd.concat([summary, pd.DataFrame([mean])], ignore_index=True).assign(device=DEVICE, commit=COMMIT)
+    summary = with_seed_mean(pd.DataFrame(rows)).assign(device=DEVICE, commit=COMMIT)
     summary.to_csv(data / "shallow_cumulus.csv", index=False)
     les_table(summary).assign(device=DEVICE, commit=COMMIT).to_csv(data / "shallow_cumulus_les.csv", index=False)
     t = np.arange(0.0, 1001.0, 100.0)

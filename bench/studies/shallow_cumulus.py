@@ -31,7 +31,7 @@ import typer
 from bench import render, runs, statistics
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleOpt,
                               ScaleName, SchedulerOpt, WorkersOpt, study_context)
-from bench.statistics import CLOUDY_COVER
+from bench.statistics import CLOUDY_COVER, cloudy_period_means
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -86,14 +86,13 @@ def analyse(result: runs.RunResult, scene) -> tuple[dict, pd.DataFrame, pd.DataF
     t_end = float(stats["time_s"].max())
     late = stats[stats["time_s"] >= ANALYSIS_FROM * t_end]
     cover = late["cloud_cover"].to_numpy(float)
-    cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
+    onset = stats["time_s"][stats["cloud_cover"] > CLOUDY_COVER]
+    means = cloudy_period_means(stats)
     row.update(cover_mean=float(cover.mean()), cover_min=float(cover.min()), cover_max=float(cover.max()),
                in_shallow_range=float(((cover >= SHALLOW_COVER[0]) & (cover <= SHALLOW_COVER[1])).mean()),
-               onset_s=float(cloudy["time_s"].iloc[0]) if len(cloudy) else math.nan,
-               cloud_base_m=float(cloudy["cloud_base"].mean()) if len(cloudy) else math.nan,
-               cloud_top_m=float(cloudy["cloud_top"].mean()) if len(cloudy) else math.nan,
-               lwp_g_m2=1e3 * float(cloudy["lwp_mean"].mean()) if len(cloudy) else math.nan,
-               clouds_end=int(stats["n_objects"].iloc[-1]))
+               onset_s=float(onset.iloc[0]) if len(onset) else math.nan,
+               cloud_base_m=means["cloud_base_mean"], cloud_top_m=means["cloud_top_mean"],
+               lwp_g_m2=1e3 * means["lwp_mean"], clouds_end=int(stats["n_objects"].iloc[-1]))
     prof = result.profiles()
     profile = pd.DataFrame()
     if len(prof):
@@ -107,6 +106,17 @@ def analyse(result: runs.RunResult, scene) -> tuple[dict, pd.DataFrame, pd.DataF
         row["z_cf_peak_over_top"] = row["z_cf_peak_m"] / top if top and math.isfinite(top) else math.nan
     series = stats[["time_s", *SERIES_COLUMNS]].copy()
     return row, series, profile
+
+
+def with_seed_mean(per_seed: pd.DataFrame, keep=("stable",)) -> pd.DataFrame:
+    """`per_seed` (one row per seed, `seed` a string) with a `seed = "mean"` row below: the mean of every
+    numeric column; `keep` columns are all-true in the mean row (booleans), other text columns repeat the
+    first row's (device, commit, solver)."""
+    text = [c for c in per_seed.columns if c != "seed" and c not in keep and per_seed[c].dtype == object]
+    numeric = per_seed.drop(columns=["seed", *keep, *text]).apply(pd.to_numeric, errors="coerce")
+    mean = {"seed": "mean", **{c: bool(per_seed[c].all()) for c in keep if c in per_seed},
+            **{c: per_seed[c].iloc[0] for c in text}, **numeric.mean().to_dict()}
+    return pd.concat([per_seed, pd.DataFrame([mean])], ignore_index=True)
 
 
 def les_table(summary: pd.DataFrame) -> pd.DataFrame:
@@ -176,10 +186,7 @@ def run_shallow_cumulus(ctx: StudyContext, seeds: int | None = None) -> dict[str
             series.append(ser.assign(seed=spec.seed))
         if len(prof):
             profiles.append(prof.assign(seed=spec.seed))
-    summary = pd.DataFrame(rows)
-    numeric = summary.drop(columns=["seed", "stable"]).apply(pd.to_numeric, errors="coerce")
-    mean = {"seed": "mean", "stable": bool(summary["stable"].all()), **numeric.mean().to_dict()}
-    summary = pd.concat([summary, pd.DataFrame([mean])], ignore_index=True).assign(device=device, commit=commit)
+    summary = with_seed_mean(pd.DataFrame(rows)).assign(device=device, commit=commit)
     frames = {
         "shallow_cumulus": summary,
         "shallow_cumulus_series": (pd.concat(series, ignore_index=True) if series else pd.DataFrame())

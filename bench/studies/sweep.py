@@ -33,7 +33,7 @@ from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
-from bench.statistics import CLOUD_MEANS, CLOUDY_COVER, grid_for_scene
+from bench.statistics import cloudy_period_means, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -111,15 +111,7 @@ def cloud_signature(result: runs.RunResult) -> dict | None:
 def cloud_means(result: runs.RunResult) -> dict:
     """Time means of cover, mean LWP (kg/m^2), cloud base and top (m) over the snapshots whose cover is above
     CLOUDY_COVER (NaN without any)."""
-    stats = result.stats() if result.stable else pd.DataFrame()
-    out = {f"{name}_mean": math.nan for name, _ in CLOUD_MEANS}
-    if not len(stats) or "cloud_cover" not in stats:
-        return out
-    cloudy = stats[stats["cloud_cover"] > CLOUDY_COVER]
-    for name, column in CLOUD_MEANS:
-        if len(cloudy) and column in cloudy:
-            out[f"{name}_mean"] = float(cloudy[column].mean())
-    return out
+    return cloudy_period_means(result.stats() if result.stable else pd.DataFrame())
 
 
 def errors(sig: dict | None, ref: dict | None) -> tuple[float, float, float]:
