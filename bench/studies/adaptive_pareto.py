@@ -116,6 +116,7 @@ class Config:
     criterion: str     # "" for uniform runs
     max_level: int = 0              # adaptive: the finest level (spacing halves every 3 levels); 0 for uniform
     threshold_scale: float = 1.0    # adaptive: eq. 20's split and merge thresholds (alpha, beta) times this
+    overrides: tuple = ()           # adaptive: further scene overrides, ((key, value), ...)
 
     @property
     def finest_spacing_m(self) -> float:
@@ -129,7 +130,7 @@ class Config:
         if self.threshold_scale != 1.0:
             over |= {"adaptive.split_threshold": base.adaptive.split_threshold * self.threshold_scale,
                      "adaptive.merge_threshold": base.adaptive.merge_threshold * self.threshold_scale}
-        return over
+        return over | dict(self.overrides)
 
 
 def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float) -> str:

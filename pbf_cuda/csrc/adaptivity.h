@@ -49,6 +49,7 @@ struct AdaptParams {
     float lookahead_height;     // m; 0: the paper's criterion
     bool refine_warm_air;       // the 'thermal' criterion
     float wall_band;            // m; particles closer than this to a wall stay at level 0 (0: off)
+    float ground_band;          // m; the same for the ground, the lower wall of the vertical axis y
 };
 
 // Shape energy (eq. 20) and candidate marks. The refinement criterion decides what water E measures:
@@ -63,7 +64,8 @@ struct AdaptParams {
 // level, on the same scale k_c as the cloud: with the defaults it splits at 0.45 K of excess, merges below 0.06 K.
 // Either way the thermals that build a cloud run at the fine resolution, not only the cloud.
 // Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
-// Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion.
+// Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion; with fine_ground the ground (the
+// lower y wall) is exempt, so the air a heated ground warms is refined where it is heated.
 struct MarkCandidates {
     GridGeometry grid;          // the domain and which axes have walls
     AdaptParams ap;
@@ -91,7 +93,8 @@ struct MarkCandidates {
         for (int a = 0; a < 3; ++a) {
             if (grid.periodic[a]) continue;
             float x = component(xyz(pos[i]), a);
-            if (x < ap.wall_band || x > grid.domain[a] - ap.wall_band) e = 0.0f;
+            float low_band = a == 1 ? ap.ground_band : ap.wall_band;
+            if (x < low_band || x > grid.domain[a] - ap.wall_band) e = 0.0f;
         }
         energy[i] = e;
         int l = radii.level_of_mass(pos[i].w);

@@ -101,6 +101,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, lookahead_height, "", 0.0f)   /* refinement: 0 = the paper's eq. 20 on w; > 0 = look-ahead rise, m */ \
     S(bool, refine_warm_air, "", false)    /* refinement: also on the heat excess (T - T0(y)) / Q (thermal) */   \
     S(bool, coarse_near_walls, "adaptive.coarse_near_walls", true) /* level 0 within h0 of a wall */              \
+    S(bool, fine_ground, "adaptive.fine_ground", false)    /* ...except the ground (the lower y wall) */          \
     S(int, adapt_every, "adaptive.every", 1)               /* split and merge every this many steps */          \
     S(std::size_t, capacity, "", 0)                        /* preallocated particle slots */
 
