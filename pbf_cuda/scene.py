@@ -42,7 +42,7 @@ BOUNDARY_KINDS = ("periodic", "wall")
 SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
 VAPOR_PROFILES = ("relative", "uniform")
 PROJECTIONS = ("position", "velocity")
-REFINEMENT_CRITERIA = ("paper", "lookahead", "thermal")
+REFINEMENT_CRITERIA = ("paper", "lookahead", "thermal", "heated")
 
 
 class SceneError(ValueError):
@@ -229,8 +229,13 @@ class Adaptive:
                                "the particle would hold after rising lookahead_height dry-adiabatically, "
                                "max(w, v + w - q_s(T - Gamma_d dz)), so thermals are refined before they condense; "
                                "'thermal': max(w, (T - T0(y)) / Q), the heat excess over the initial profile as the "
-                               "cloud water that would release it, so heated air is refined from the ground up")
+                               "cloud water that would release it, so heated air is refined from the ground up; "
+                               "'heated': the thermal criterion and max(w*, S_e(x, z) tau / Q), the heat the ground "
+                               "below gives in tau = heating_time, so the columns above heated ground are fine "
+                               "before thermals rise in them")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
+    heating_time: float = _spec(60.0, 0.0, 1e6, "s", "tau of the 'heated' criterion: with the defaults a column "
+                                                     "is fine where S_e tau > 0.45 K")
     coarse_near_walls: bool = _spec(True, doc="particles within one level-0 kernel radius h0 of a wall stay at level 0 "
                                               "(never split; finer ones merge): the boundary particles sample a wall "
                                               "at level-0 spacing, which a finer kernel sees as lumps")
@@ -457,9 +462,14 @@ def _cross_checks(scene: Scene, source: str):
                 f"adaptive.split_threshold = {scene.adaptive.split_threshold}")
         if scene.atmosphere is None:
             raise SceneError(f"{source}: adaptive.enabled needs an [atmosphere] section (the shape energy uses cloud w)")
-        if scene.adaptive.criterion == "thermal" and scene.atmosphere.latent_heat <= 0.0:
-            raise SceneError(f"{source}: adaptive.criterion = 'thermal' measures heat excess in units of "
+        criterion = scene.adaptive.criterion
+        if criterion in ("thermal", "heated") and scene.atmosphere.latent_heat <= 0.0:
+            raise SceneError(f"{source}: adaptive.criterion = '{criterion}' measures heat in units of "
                              f"atmosphere.latent_heat (Q), which must then be > 0 (got {scene.atmosphere.latent_heat})")
+        if criterion == "heated" and not (scene.atmosphere.heating_rate > 0.0 and scene.adaptive.heating_time > 0.0):
+            raise SceneError(f"{source}: adaptive.criterion = 'heated' refines above heated ground: it needs "
+                             f"atmosphere.heating_rate > 0 (got {scene.atmosphere.heating_rate}) and "
+                             f"adaptive.heating_time > 0 (got {scene.adaptive.heating_time})")
     if scene.atmosphere is not None:
         a = scene.atmosphere
         from .environment import EnvironmentProfile

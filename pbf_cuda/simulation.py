@@ -91,6 +91,7 @@ DERIVED = {
     "max_level": ("adaptive.enabled", "adaptive.max_level"),
     "lookahead_height": ("adaptive.criterion", "adaptive.lookahead_height"),
     "refine_warm_air": ("adaptive.criterion",),
+    "heating_time": ("adaptive.criterion", "adaptive.heating_time"),
     "capacity": (),            # of the particle count, not of the scene alone: memory.particle_slots
 }
 
@@ -143,7 +144,8 @@ def derived_params(scene: Scene, capacity: int, core=None) -> dict:
     ad = scene.adaptive
     out["max_level"] = ad.max_level if ad.enabled else 0
     out["lookahead_height"] = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
-    out["refine_warm_air"] = ad.criterion == "thermal"
+    out["refine_warm_air"] = ad.criterion in ("thermal", "heated")
+    out["heating_time"] = ad.heating_time if ad.criterion == "heated" else 0.0
     out["capacity"] = capacity
     return out
 

@@ -4,8 +4,8 @@
 // Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
 // x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
 // of level l+1. It splits only if (a) no other candidate of higher priority (larger E; ties go to a
-// hash of id and step) lies within the conflict radius, so children of two parents splitting in the
-// same step never come closer than the threshold, and (b) no existing particle other than the parent
+// hash of id and step) would put a child within the threshold of one of its children, so children of two
+// parents splitting in the same step never come closer than the threshold, and (b) no existing particle other than the parent
 // lies within min_distance * h_{l+1} of either child (only particles within |offset| + r_min of the
 // parent can). The candidates are first gathered into a list (index order); one team per candidate
 // decides. Winners get slots from a prefix sum over the list; the parent's slot holds child 1, slot
@@ -47,7 +47,8 @@ struct AdaptParams {
     float spacing[kMaxLevels];  // lattice spacing of each level, m
     float conflict_radius;      // m
     float lookahead_height;     // m; 0: the paper's criterion
-    bool refine_warm_air;       // the 'thermal' criterion
+    bool refine_warm_air;       // the 'thermal' and 'heated' criteria
+    float heating_time;         // s; > 0: the 'heated' criterion's tau
     float wall_band;            // m; particles closer than this to a wall stay at level 0 (0: off)
     float ground_band;          // m; the same for the ground, the lower wall of the vertical axis y
 };
@@ -56,12 +57,17 @@ struct AdaptParams {
 //   paper      E = k_p (1 - exp(-k_c w))                                   (eq. 20)
 //   lookahead  E = k_p (1 - exp(-k_c w*)),  w* = max(w, v + w - q_s(T - Gamma_d dz))
 //   thermal    E = k_p (1 - exp(-k_c w*)),  w* = max(w, (T - T0(y)) / Q)
+//   heated     E = k_p (1 - exp(-k_c w*)),  w* = max(w, (T - T0(y)) / Q, S_e(x, z) tau / Q)
 // Look-ahead: w* is the cloud water of the particle lifted dz dry-adiabatically (eq. 7) and brought to
 // saturation (eq. 10, latent heat left out, which only lowers w*): air within dz of its condensation level is
 // refined before it condenses. Thermal: w* is the particle's heat excess over the environment profile
 // T0(y) = T_g - Gamma y (eq. 6), written as the cloud water whose condensation would release it (eq. 11,
 // Q = L / c_p), so heated, buoyant air is refined from the ground up, before it reaches its condensation
 // level, on the same scale k_c as the cloud: with the defaults it splits at 0.45 K of excess, merges below 0.06 K.
+// Heated: the thermal criterion, and every particle above heated ground, from the ground to the lid, with S_e(x, z)
+// tau / Q the cloud water whose condensation would release the heat the ground under it gives in tau = heating_time
+// (eq. 5's pattern, without the diurnal factor): the columns where thermals will rise are fine before they rise,
+// so the heated air is fine where it is heated (with fine_ground) and the thermal rises through fine air.
 // Either way the thermals that build a cloud run at the fine resolution, not only the cloud.
 // Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
 // Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion; with fine_ground the ground (the
@@ -86,6 +92,10 @@ struct MarkCandidates {
         if (ap.refine_warm_air) {
             float excess = temperature[i] - atm.environment_temperature(pos[i].y);
             w = fmaxf(w, excess / atm.latent_heat);
+        }
+        if (ap.heating_time > 0.0f) {  // the heat the ground below gives in tau (eq. 5), as cloud water
+            float column = atm.heating_rate * atm.heating_pattern(pos[i].x, pos[i].z) * ap.heating_time;
+            w = fmaxf(w, column / atm.latent_heat);
         }
         float e = ap.k_p * (-expm1f(-ap.k_c * w));  // E = k_p (1 - exp(-k_c w)), eq. 20
         // Next to a wall the boundary particles sit on the level-0 lattice: a finer kernel sees them as lumps and
@@ -141,18 +151,28 @@ struct DecideSplits {
         // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
         // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
         uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
+        Vec3 off = (0.5f * ap.spacing[l + 1]) * split_direction(idi, step);
         bool lost = false;
+        // i loses to a candidate j of higher priority whose children would come within the too-close threshold
+        // of i's (the larger of the two children's, so the relation is symmetric): of the children x_i +- o_i and
+        // x_j +- o_j, the closest pair is |r_ij +- o_i +- o_j|. Candidates farther apart than the conflict radius
+        // (spacing_1 + min_distance h_1, the largest offsets and threshold) never conflict.
         // Split candidates have not moved since the sort (merges move merge candidates only): no slack.
         for_each_neighbor_strided(grid, fluid, xi, ap.conflict_radius, 0.0f, team.rank(), Team::kSize,
-                                  [&](uint32_t j, Vec3, float) {
+                                  [&](uint32_t j, Vec3 r, float) {
             if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
             float ej = energy[j];
             uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
-            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) lost = true;
+            if (!(ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi))))) return;
+            int lj = radii.level_of_mass(fluid.pos[j].w);
+            Vec3 offj = (0.5f * ap.spacing[lj + 1]) * split_direction(id[j], step);
+            float r_min = ap.min_distance * fmaxf(radii.h[l + 1], radii.h[lj + 1]);
+            Vec3 a = r + off, b = r - off;
+            float closest = fminf(fminf(dot(a - offj, a - offj), dot(a + offj, a + offj)),
+                                  fminf(dot(b - offj, b - offj), dot(b + offj, b + offj)));
+            if (closest < r_min * r_min) lost = true;
         });
         if (team.any(lost)) return;
-        Vec3 n = split_direction(idi, step);
-        Vec3 off = (0.5f * ap.spacing[l + 1]) * n;
         Vec3 c1 = xi + off, c2 = xi - off;
         float r_min = ap.min_distance * radii.h[l + 1];
         float r2_min = r_min * r_min;

@@ -52,6 +52,7 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
     ap.min_distance = p.min_distance;
     ap.lookahead_height = p.thermodynamics ? p.lookahead_height : 0.0f;
     ap.refine_warm_air = p.thermodynamics && p.refine_warm_air;
+    ap.heating_time = p.thermodynamics ? p.heating_time : 0.0f;
     ap.h0 = p.h0;
     ap.wall_band = p.coarse_near_walls ? p.h0 : 0.0f;
     ap.ground_band = p.coarse_near_walls && !p.fine_ground ? p.h0 : 0.0f;
