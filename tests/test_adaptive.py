@@ -244,6 +244,33 @@ def test_nested_neighbour_search_finds_every_pair_of_mixed_levels(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_neighbour_lists_hold_the_pairs_within_their_own_support(backend):
+    """A mixed-level box at rest (the step's predicted positions are the state's): the step's lists hold, over all
+    particles, exactly the pairs (i itself included) with |x_ij| < max(h_i, h_j) + skin (skin 0.1 h0), not every
+    particle of a cell within the cell's largest radius."""
+    scene = adaptive_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.heating_rate": 0.0,
+                              "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0})
+    st = mixed_level_state(scene, backend)
+    st["velocity"][:] = 0.0
+    sim = Simulation.from_arrays(scene, st, backend=backend)
+    st = sim.state()
+    sim.step(1)
+    listed = sim.stats()["neighbor_candidates"]
+    x, hr = st["position"].astype(np.float64), st["kernel_radius"].astype(np.float64)
+    tree, pos = periodic_tree(scene, x)
+    h0, skin = hr.max(), 0.1 * hr.max()
+    expected = 0
+    for i in range(len(x)):
+        hits = np.asarray(tree.query_ball_point(pos[i], h0 + skin))
+        r = np.linalg.norm(((pos[hits] - pos[i] + 0.5 * np.array(tree.boxsize)) % tree.boxsize)
+                           - 0.5 * np.array(tree.boxsize), axis=1)
+        expected += int(np.sum(r < np.maximum(hr[i], hr[hits]) + skin))
+    all_within_h0 = sum(len(tree.query_ball_point(pos[i], h0 + skin)) for i in range(len(x)))
+    assert abs(listed - expected) <= 1e-4 * expected, (listed, expected)
+    assert listed < 0.9 * all_within_h0          # half the particles are level 0 here (support h0 for all their pairs)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_mixed_level_box_conserves_horizontal_momentum(backend):
     """Pair forces of mixed levels are equal and opposite only if i finds j whenever j finds i: the periodic
     (x, z) momentum of a box of levels 0-3 with random velocities stays constant over 20 steps."""

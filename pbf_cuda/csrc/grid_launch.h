@@ -142,8 +142,9 @@ void build_neighbor_lists(SolverData& d) {
     if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return;
     CellRanges fl = d.fluid_ranges(d.pred);
     const float skin = kNeighborSkin * d.p.h0;
-    parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.uint_tmp)});
+    parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, raw(d.uint_tmp)});
     const unsigned long long total = reduce_over(d.n, CountAt{raw(d.uint_tmp)}, 0ull, thrust::plus<unsigned long long>());
+    d.list_entries = total;
     if (total > 0xffffffffull) {
         d.give_up_lists();
         return;
@@ -159,7 +160,7 @@ void build_neighbor_lists(SolverData& d) {
         }
     }
     thrust::inclusive_scan(exec(), d.uint_tmp.begin(), d.uint_tmp.begin() + d.n, d.nbr_offset.begin() + 1);
-    parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
+    parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
     d.lists_ready = true;
 }
 

@@ -7,6 +7,7 @@
 //   tensile_ratio, tensile_scale  the s_corr term at the pair's own radii (PositionCorrection)
 //   for_each_neighbor             the 27-cell search at h0, or the nested sub-cell search of grid.h
 //   for_each_candidate            the same search with every radius widened by a skin (neighbor_list.h)
+//   within_support                whether a candidate pair lies within its own support plus the skin
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -32,6 +33,8 @@ struct UniformPolicy {
                                           float skin, F&& f) {
         pbf::for_each_neighbor(g, set, q, h0 + skin, f);
     }
+    // The search above already tests h0 + skin.
+    static PBF_HD bool within_support(float, float, float, float) { return true; }
 };
 
 // Particles of several levels: radius from the mass, symmetric kernels (eq. 19), the nested search.
@@ -62,6 +65,11 @@ struct AdaptivePolicy {
     static PBF_HD void for_each_candidate(const GridGeometry& g, const CellRanges& set, uint32_t i, Vec3 q, float,
                                           float skin, F&& f) {
         for_each_neighbor_nested(g, set, i, q, f, skin);
+    }
+    // |r| < max(h_i, h_j) + skin: the pair's own support (eq. 19), widened by the lists' skin.
+    static PBF_HD bool within_support(float r2, float hi, float hj, float skin) {
+        float s = fmaxf(hi, hj) + skin;
+        return r2 < s * s;
     }
 };
 

@@ -32,16 +32,32 @@ namespace pbf {
 // Skin of the lists as a fraction of the level-0 kernel radius h0.
 constexpr float kNeighborSkin = 0.1f;
 
+// f(j) for the candidates of particle i: the policy's search widened by the skin, and in adaptive runs only the
+// pairs within their own support max(h_i, h_j) plus the skin. The nested search's cell mode tests a whole cell's
+// pairs against the cell's largest radius, so without this a level-3 particle in a cell that holds one level-0
+// particle would list every particle within h0 (8 times the volume its pairs need) and every pass would read them.
+// The test is symmetric in i and j, so j is in i's list exactly when i is in j's.
+template <class Policy, class F>
+PBF_HD inline void for_each_list_candidate(const GridGeometry& grid, const CellRanges& fluid, const LevelRadii& radii,
+                                           float h0, float skin, uint32_t i, F&& f) {
+    Float4 pi = fluid.pos[i];
+    const float hi = Policy::radius(radii, h0, pi.w);
+    Policy::for_each_candidate(grid, fluid, i, xyz(pi), h0, skin, [&](uint32_t j, Vec3, float r2) {
+        if (Policy::within_support(r2, hi, Policy::radius(radii, h0, fluid.pos[j].w), skin)) f(j);
+    });
+}
+
 // count[i] = candidates of particle i.
 template <class Policy>
 struct CountNeighbors {
     GridGeometry grid;
     CellRanges fluid;
+    LevelRadii radii;
     float h0, skin;
     uint32_t* count;
     PBF_HD void operator()(uint32_t i) const {
         uint32_t c = 0;
-        Policy::for_each_candidate(grid, fluid, i, xyz(fluid.pos[i]), h0, skin, [&](uint32_t, Vec3, float) { ++c; });
+        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t) { ++c; });
         count[i] = c;
     }
 };
@@ -51,13 +67,13 @@ template <class Policy>
 struct FillNeighbors {
     GridGeometry grid;
     CellRanges fluid;
+    LevelRadii radii;
     float h0, skin;
     const uint32_t* offset;
     uint32_t* index;
     PBF_HD void operator()(uint32_t i) const {
         uint32_t k = offset[i];
-        Policy::for_each_candidate(grid, fluid, i, xyz(fluid.pos[i]), h0, skin,
-                                   [&](uint32_t j, Vec3, float) { index[k++] = j; });
+        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) { index[k++] = j; });
     }
 };
 

@@ -38,6 +38,7 @@ struct SolverData {
     dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
     bool lists_ready = false;             // the lists belong to this step's sorted particles
     bool lists_given_up = false;          // too many candidates for uint32 offsets, or no memory (grid_launch.h)
+    unsigned long long list_entries = 0;  // candidates in the last lists built
     void give_up_lists() {
         lists_given_up = true;
         lists_ready = false;
