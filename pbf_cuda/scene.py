@@ -239,10 +239,6 @@ class Adaptive:
     coarse_near_walls: bool = _spec(True, doc="particles within one level-0 kernel radius h0 of a wall stay at level 0 "
                                               "(never split; finer ones merge): the boundary particles sample a wall "
                                               "at level-0 spacing, which a finer kernel sees as lumps")
-    fine_ground: bool = _spec(False, doc="with coarse_near_walls, the ground (the lower wall of the vertical axis y) "
-                                         "is exempt: the air a heated ground warms is refined where it is heated "
-                                         "(the lumps matter where fine air is pressed into a wall, as rising air "
-                                         "is into the lid; at the ground the heated air rises away from it)")
     every: int = _spec(1, 1, 1000, "steps", "split and merge every this many steps (1: every step, as the paper); "
                                              "between them the levels stay as they are")
     capacity: float = _spec(4.0, 1.0, 1e3, "", "preallocated slots as a multiple of the initial particle count")

@@ -2,7 +2,7 @@
 (the same uniform front, reference, seed means and verdict), before a variant joins the study.
 
     python scripts/probe_adaptive_variants.py --scene cumulus --backend cuda \\
-        --variant thermal-68m-g:thermal:68:3:1:'{"adaptive.fine_ground": true}' [--variant ...] [--seeds 3]
+        --variant heated-68m-tau120:heated:68:3:1:'{"adaptive.heating_time": 120}' [--variant ...] [--seeds 3]
 
 Each --variant is NAME:CRITERION:LEVEL0_SPACING_M:MAX_LEVEL:THRESHOLD_SCALE[:OVERRIDES_JSON].  Prints the
 configuration table and the verdict's speed-ups; --out DIR also writes the study's three files there with

@@ -469,24 +469,6 @@ def test_particles_next_to_walls_stay_at_level_0(backend, spacing):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_fine_ground_exempts_only_the_ground(backend):
-    """adaptive.fine_ground: with coarse_near_walls, particles in the ground's band h0 split in cloud like the
-    interior, while none in the lid's band does."""
-    spacing = 100.0
-    scene = adaptive_scene(**{"particles.spacing": spacing, "adaptive.fine_ground": True, "atmosphere.buoyancy": 0.0})
-    h0, top = scene.kernel_radius, scene.domain.size[1]
-    band = h0 - 0.5 * spacing * 2.0 ** (-1.0 / 3.0)
-    sim = with_cloud(scene, backend, lambda x: np.full(len(x), 0.01))
-    for _ in range(3):
-        sim.adapt()
-    st = sim.state()
-    y, fine = st["position"][:, 1], st["level"] > 0
-    assert fine[y < band].sum() > 0
-    assert fine[y > top - band].sum() == 0
-    assert fine[(y > h0) & (y < top - h0)].sum() > 0
-
-
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_scorr_fine_weights_only_pairs_with_a_fine_particle(backend):
     """pbf.scorr_fine scales s_corr on pairs with a particle finer than level 0 and nothing else: a box of level-0
     particles steps bitwise alike for weights 0 and 1, a mixed-level box does not (s_corr acts there), and a

@@ -491,7 +491,7 @@ def adaptive_pareto_plot(configs: pd.DataFrame, noise_floor: float | None = None
     for row in uniform.itertuples():
         ax.annotate(f"{row.spacing_m:g} m", (row.error, row.ms_per_step), textcoords="offset points", xytext=(4, 4),
                     fontsize=8)
-    markers = {"paper": "s", "lookahead": "D", "thermal": "^"}
+    markers = {"paper": "s", "lookahead": "D", "thermal": "^", "heated": "v"}
     for i, (crit, g) in enumerate(d[d["kind"] == "adaptive"].groupby("criterion")):
         out = g["config"].isin(list(excluded))
         for part, face, label in ((g[~out], None, f"adaptive, {crit}"),

@@ -83,7 +83,7 @@ from bench.studies.scales import scale_steps
 from pbf_cuda.scene import Scene, load_scene
 
 SCENES = ("growing", "cumulus")
-CRITERIA = ("paper", "lookahead", "thermal")
+CRITERIA = ("paper", "lookahead", "thermal", "heated")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
 FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0),   # (criterion, level-0 spacing m, max_level, threshold scale):

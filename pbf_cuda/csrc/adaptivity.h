@@ -50,7 +50,6 @@ struct AdaptParams {
     bool refine_warm_air;       // the 'thermal' and 'heated' criteria
     float heating_time;         // s; > 0: the 'heated' criterion's tau
     float wall_band;            // m; particles closer than this to a wall stay at level 0 (0: off)
-    float ground_band;          // m; the same for the ground, the lower wall of the vertical axis y
 };
 
 // Shape energy (eq. 20) and candidate marks. The refinement criterion decides what water E measures:
@@ -67,11 +66,10 @@ struct AdaptParams {
 // Heated: the thermal criterion, and every particle above heated ground, from the ground to the lid, with S_e(x, z)
 // tau / Q the cloud water whose condensation would release the heat the ground under it gives in tau = heating_time
 // (eq. 5's pattern, without the diurnal factor): the columns where thermals will rise are fine before they rise,
-// so the heated air is fine where it is heated (with fine_ground) and the thermal rises through fine air.
+// and the thermal rises through fine air from the top of the walls' band up.
 // Either way the thermals that build a cloud run at the fine resolution, not only the cloud.
 // Merging uses the same E with beta < alpha, so a particle the criterion wants fine is never merged back.
-// Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion; with fine_ground the ground (the
-// lower y wall) is exempt, so the air a heated ground warms is refined where it is heated.
+// Walls (coarse_near_walls): E = 0 within h0 of a wall, whatever the criterion.
 struct MarkCandidates {
     GridGeometry grid;          // the domain and which axes have walls
     AdaptParams ap;
@@ -103,8 +101,7 @@ struct MarkCandidates {
         for (int a = 0; a < 3; ++a) {
             if (grid.periodic[a]) continue;
             float x = component(xyz(pos[i]), a);
-            float low_band = a == 1 ? ap.ground_band : ap.wall_band;
-            if (x < low_band || x > grid.domain[a] - ap.wall_band) e = 0.0f;
+            if (x < ap.wall_band || x > grid.domain[a] - ap.wall_band) e = 0.0f;
         }
         energy[i] = e;
         int l = radii.level_of_mass(pos[i].w);

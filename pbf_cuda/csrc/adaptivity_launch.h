@@ -55,7 +55,6 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
     ap.heating_time = p.thermodynamics ? p.heating_time : 0.0f;
     ap.h0 = p.h0;
     ap.wall_band = p.coarse_near_walls ? p.h0 : 0.0f;
-    ap.ground_band = p.coarse_near_walls && !p.fine_ground ? p.h0 : 0.0f;
     for (int l = 0; l < kMaxLevels; ++l) ap.spacing[l] = p.spacing * std::pow(2.0f, -l / 3.0f);
     // Two children of different parents are >= conflict - 2 * max offset apart: make that the threshold.
     ap.conflict_radius = ap.spacing[1] + p.min_distance * radii.h[1];

@@ -102,7 +102,6 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(bool, refine_warm_air, "", false)    /* refinement: also on the heat excess (T - T0(y)) / Q (thermal) */   \
     S(float, heating_time, "", 0.0f)       /* refinement: > 0 also on the ground heating below, S_e tau / Q */    \
     S(bool, coarse_near_walls, "adaptive.coarse_near_walls", true) /* level 0 within h0 of a wall */              \
-    S(bool, fine_ground, "adaptive.fine_ground", false)    /* ...except the ground (the lower y wall) */          \
     S(int, adapt_every, "adaptive.every", 1)               /* split and merge every this many steps */          \
     S(std::size_t, capacity, "", 0)                        /* preallocated particle slots */
 
