@@ -285,15 +285,17 @@ struct PositionCorrection {
         Vec3 dp = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
                                          [&](uint32_t j, float r2, float mj, float hj) {
             float s = 0.0f;
-            // s_corr = -k (W(r) / W(dq h))^n, at the pair's radii (policy), times scorr_fine on a pair with a fine
-            // particle; a pair it weighs 0 skips the kernels (the shipped adaptive scenes: every fine pair).
+            // s_corr = -k (W(r) / W(dq h))^n: between level-0 particles as in a uniform run, on a pair with a
+            // fine particle at the pair's radii (policy) times scorr_fine; a pair it weighs 0 skips the kernels
+            // (the shipped adaptive scenes: every fine pair).
             const bool fine_pair = hi < cp.h0 || hj < cp.h0;
             if (cp.scorr_k_lambda > 0.0f && !(fine_pair && cp.scorr_fine == 0.0f)) {
-                float ratio = Policy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq);
+                float ratio = fine_pair ? Policy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq)
+                                        : UniformPolicy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq);
                 float p = ratio;
                 for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
-                s = Policy::tensile_scale(-cp.scorr_k_lambda * p, hi, hj, cp.h0);
-                if (fine_pair) s *= cp.scorr_fine;
+                s = -cp.scorr_k_lambda * p;
+                if (fine_pair) s = Policy::tensile_scale(s, hi, hj, cp.h0) * cp.scorr_fine;
             }
             return li * mj / mi + lambda[j] + s;
         });
