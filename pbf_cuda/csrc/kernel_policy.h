@@ -82,17 +82,13 @@ template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
     if (fluid.nbr_offset) {
-        const float mi = fluid.pos[i].w;
-        const float hi = Policy::radius(radii, h0, mi);
+        const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
         for (uint32_t k = fluid.nbr_offset[i], e = fluid.nbr_offset[i + 1]; k < e; ++k) {
             uint32_t j = fluid.nbr_index[k];
             Float4 pj = fluid.pos[j];
             Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
             float r2 = dot(r, r);
-            // A level is its mass (m_l = m0 2^-l): a neighbour of i's own level has i's radius, and only the pairs
-            // across levels look theirs up (most pairs of an adaptive run are of one level).
-            float hj = hi;
-            if (pj.w != mi) hj = Policy::radius(radii, h0, pj.w);
+            float hj = Policy::radius(radii, h0, pj.w);
             float hm = fmaxf(hi, hj);
             if (r2 < hm * hm) f(j, r, r2, pj.w, hj);
         }
