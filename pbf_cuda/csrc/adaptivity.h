@@ -4,8 +4,8 @@
 // Splitting. A particle with E > alpha and l < max_level is a candidate. Its two children sit at
 // x +- (d_{l+1} / 2) n, with n a unit direction drawn from (id, step) and d_{l+1} the lattice spacing
 // of level l+1. It splits only if (a) no other candidate of higher priority (larger E; ties go to a
-// hash of id and step) would put a child within the threshold of one of its children, so children of two
-// parents splitting in the same step never come closer than the threshold, and (b) no existing particle other than the parent
+// hash of id and step) lies within the conflict radius, so children of two parents splitting in the
+// same step never come closer than the threshold, and (b) no existing particle other than the parent
 // lies within min_distance * h_{l+1} of either child (only particles within |offset| + r_min of the
 // parent can). The candidates are first gathered into a list (index order); one team per candidate
 // decides. Winners get slots from a prefix sum over the list; the parent's slot holds child 1, slot
@@ -148,28 +148,17 @@ struct DecideSplits {
         // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
         // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
         uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
-        Vec3 off = (0.5f * ap.spacing[l + 1]) * split_direction(idi, step);
         bool lost = false;
-        // i loses to a candidate j of higher priority whose children would come within the too-close threshold
-        // of i's (the larger of the two children's, so the relation is symmetric): of the children x_i +- o_i and
-        // x_j +- o_j, the closest pair is |r_ij +- o_i +- o_j|. Candidates farther apart than the conflict radius
-        // (spacing_1 + min_distance h_1, the largest offsets and threshold) never conflict.
         // Split candidates have not moved since the sort (merges move merge candidates only): no slack.
         for_each_neighbor_strided(grid, fluid, xi, ap.conflict_radius, 0.0f, team.rank(), Team::kSize,
-                                  [&](uint32_t j, Vec3 r, float) {
+                                  [&](uint32_t j, Vec3, float) {
             if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
             float ej = energy[j];
             uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
-            if (!(ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi))))) return;
-            int lj = radii.level_of_mass(fluid.pos[j].w);
-            Vec3 offj = (0.5f * ap.spacing[lj + 1]) * split_direction(id[j], step);
-            float r_min = ap.min_distance * fmaxf(radii.h[l + 1], radii.h[lj + 1]);
-            Vec3 a = r + off, b = r - off;
-            float closest = fminf(fminf(dot(a - offj, a - offj), dot(a + offj, a + offj)),
-                                  fminf(dot(b - offj, b - offj), dot(b + offj, b + offj)));
-            if (closest < r_min * r_min) lost = true;
+            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) lost = true;
         });
         if (team.any(lost)) return;
+        Vec3 off = (0.5f * ap.spacing[l + 1]) * split_direction(idi, step);
         Vec3 c1 = xi + off, c2 = xi - off;
         float r_min = ap.min_distance * radii.h[l + 1];
         float r2_min = r_min * r_min;
