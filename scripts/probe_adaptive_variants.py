@@ -39,13 +39,7 @@ configs = [c for c in ap.configs(args.scale) if c.kind != "adaptive"] + custom
 ctx = StudyContext(out=args.out or Path("/tmp/probe_adaptive_variants"), scale=SCALES[args.scale],
                    runs_root=args.runs_root or runs.default_root(), backend=args.backend, quiet=False,
                    scheduler="inline")
-entries = []
-for config in configs:
-    scene = ap.scene_for(config, args.scene, ctx.scale.step_fraction)
-    for seed in range(args.seeds):
-        entries.append((config, seed, runs.RunSpec("particles", scene, backend=args.backend, seed=seed, keep_snapshots=1,
-                                                   checkpoint_every=scene.time.steps,
-                                                   diagnostics_resolution=ap.ANALYSIS_GRID, warmup_steps=5)))
+entries = ap.plan(ctx, args.scene, args.seeds, configs)
 results = ctx.run_parallel([e[2] for e in entries], f"probe {args.scene}")
 device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
 per_run, per_config, verdict = ap.analyse(entries, results, args.scene, device, args.commit, None)

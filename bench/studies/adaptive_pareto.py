@@ -158,9 +158,11 @@ def scene_for(config: Config, scene_name: str, step_fraction: float) -> Scene:
     return scale_steps(scene, step_fraction)
 
 
-def plan(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[Config, int, runs.RunSpec]]:
+def plan(ctx: StudyContext, scene_name: str, seeds: int,
+         study_configs: list[Config] | None = None) -> list[tuple[Config, int, runs.RunSpec]]:
+    """(config, seed, run) of every run: of `study_configs`, default the study's own (:func:`configs`)."""
     out = []
-    for config in configs(ctx.scale.name):
+    for config in configs(ctx.scale.name) if study_configs is None else study_configs:
         scene = scene_for(config, scene_name, ctx.scale.step_fraction)
         for seed in range(seeds):
             # one checkpoint at the end: a study run is short, and full-state writes would dominate its time
