@@ -15,6 +15,13 @@
 
 namespace pbf {
 
+// |r| < max(h_i, h_j) + extra: the support of the symmetric kernel of eq. 19 (extra 0), or that support widened by
+// the neighbour lists' skin.
+PBF_HD inline bool within_pair_support(float r2, float hi, float hj, float extra) {
+    float s = fmaxf(hi, hj) + extra;
+    return r2 < s * s;
+}
+
 // Every particle is level 0: radius h0, plain kernels, the uniform grid search.
 struct UniformPolicy {
     static PBF_HD float radius(const LevelRadii&, float h0, float) { return h0; }
@@ -66,10 +73,9 @@ struct AdaptivePolicy {
                                           float skin, F&& f) {
         for_each_neighbor_nested(g, set, i, q, f, skin);
     }
-    // |r| < max(h_i, h_j) + skin: the pair's own support (eq. 19), widened by the lists' skin.
+    // The pair's own support (eq. 19), widened by the lists' skin.
     static PBF_HD bool within_support(float r2, float hi, float hj, float skin) {
-        float s = fmaxf(hi, hj) + skin;
-        return r2 < s * s;
+        return within_pair_support(r2, hi, hj, skin);
     }
 };
 
@@ -89,8 +95,7 @@ PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRang
             Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
             float r2 = dot(r, r);
             float hj = Policy::radius(radii, h0, pj.w);
-            float hm = fmaxf(hi, hj);
-            if (r2 < hm * hm) f(j, r, r2, pj.w, hj);
+            if (within_pair_support(r2, hi, hj, 0.0f)) f(j, r, r2, pj.w, hj);
         }
         return;
     }
