@@ -27,10 +27,12 @@ BYTES_PER_BOUNDARY = 48          # float4 position, three floats, sort keys
 BYTES_PER_CELL = 16              # fluid and boundary cell start/end (uint32 each)
 HOST_BYTES_PER_PARTICLE = 160    # numpy arrays while the initial state is built (float64 lattices)
 HOST_BYTES_PER_BOUNDARY = 96
-NEIGHBOR_LIST_HEADROOM = 1.25    # the index array grows to 1.25x the entries it needs (neighbor_list.h)
+LIST_ROW_WIDTH = 1.4             # the lists' row width over the mean candidates of a uniform run: the longest
+                                 # row of a disordered run plus the eighth the solver adds (neighbor_list.h)
+ADAPTIVE_LIST_ROW_WIDTH = 4.0    # the same in adaptive runs: a coarse particle beside finer ones lists more
 MAX_CELLS = 2**32 - 1            # the solver's cell index is a uint32
 MAX_SLOTS = 2**32 - 2            # particle ids are uint32
-MAX_LIST_ENTRIES = 2**32 - 1     # the neighbour lists' offsets are uint32
+MAX_LIST_ENTRIES = 2**32 - 1     # the solver keeps at most this many list slots (n x row width)
 SAFETY = 0.8                     # use at most this fraction of what is available
 
 
@@ -108,19 +110,17 @@ def solver_bytes_per_slot(scene: Scene) -> int:
 
 
 def neighbor_list_bytes_per_slot(scene: Scene, slots: int = 1) -> int:
-    """Bytes per particle slot of the per-step neighbour lists (pbf.neighbor_list): a row offset and the
-    candidates within (1 + skin) kernel radii of a full lattice neighbourhood, uint32 each, with the index
-    array's headroom; adaptive scenes twice that (a coarse particle beside finer ones has more candidates).
-    Past MAX_LIST_ENTRIES candidates in all (`slots` of them) the solver gives the lists up and searches
-    the cells (grid_launch.h): the offsets only."""
+    """Bytes per particle slot of the per-step neighbour lists (pbf.neighbor_list): a count and a row of
+    uint32 candidates, the row LIST_ROW_WIDTH times the candidates within (1 + skin) kernel radii of a full
+    lattice neighbourhood (ADAPTIVE_LIST_ROW_WIDTH in adaptive scenes). Past MAX_LIST_ENTRIES slots in all
+    (`slots` rows) the solver gives the lists up and searches the cells (grid_launch.h): the counts only."""
     if not scene.pbf.neighbor_list:
         return 0
     candidates = 4.0 / 3.0 * math.pi * (1.1 * scene.particles.kernel_ratio) ** 3
-    if scene.adaptive.enabled:
-        candidates *= 2.0
-    if slots * candidates > MAX_LIST_ENTRIES:
+    width = candidates * (ADAPTIVE_LIST_ROW_WIDTH if scene.adaptive.enabled else LIST_ROW_WIDTH)
+    if slots * width > MAX_LIST_ENTRIES:
         return 4
-    return 4 + int(math.ceil(4 * NEIGHBOR_LIST_HEADROOM * candidates))
+    return 4 + int(math.ceil(4 * width))
 
 
 def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,

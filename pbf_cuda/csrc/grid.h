@@ -5,6 +5,7 @@
 // image particles' memory); wall axes extend the grid by one kernel radius beyond each wall
 // for the boundary particles.
 #pragma once
+#include <cstddef>
 #include "common.h"
 
 namespace pbf {
@@ -115,10 +116,15 @@ struct CellRanges {
     const float* sub_radius = nullptr;    // per sub-cell: largest kernel radius of its particles (m), 0 if empty
     const float* cell_radius = nullptr;   // per cell: largest kernel radius of its particles (m), 0 if empty
     const uint32_t* key = nullptr;        // per particle: its nested key as sorted
-    // This step's neighbour lists (neighbor_list.h), when the solver keeps them: particle i's candidates are
-    // nbr_index[nbr_offset[i] .. nbr_offset[i + 1]), in the order the cell search visits them.
-    const uint32_t* nbr_offset = nullptr;
+    // This step's neighbour lists (neighbor_list.h), when the solver keeps them: particle i has nbr_count[i]
+    // candidates, the k-th at nbr_index[i * nbr_row + k * nbr_slot], in the order the cell search visits them.
+    const uint32_t* nbr_count = nullptr;
     const uint32_t* nbr_index = nullptr;
+    uint32_t nbr_row = 0, nbr_slot = 0;
+    // Particle i's candidate k (64-bit arithmetic: the lists may hold more than 2^32 entries).
+    PBF_HD uint32_t candidate(uint32_t i, uint32_t k) const {
+        return nbr_index[std::size_t(i) * nbr_row + std::size_t(k) * nbr_slot];
+    }
 };
 
 // ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------

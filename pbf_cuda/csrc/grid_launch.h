@@ -125,43 +125,69 @@ inline void build_neighbor_grid(SolverData& d) {
                                                        raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
 }
 
-// A particle's candidate count, widened so that their sum cannot wrap.
-struct CountAt {
+// The sum (widened so that it cannot wrap) and the largest of the particles' candidate counts.
+struct ListSize {
+    unsigned long long total;
+    uint32_t longest;
+};
+struct ListSizeOf {
     const uint32_t* count;
-    PBF_HD unsigned long long operator()(uint32_t i) const { return count[i]; }
+    PBF_HD ListSize operator()(uint32_t i) const { return ListSize{count[i], count[i]}; }
+};
+struct ListSizeAdd {
+    PBF_HD ListSize operator()(const ListSize& a, const ListSize& b) const {
+        return ListSize{a.total + b.total, a.longest > b.longest ? a.longest : b.longest};
+    }
 };
 
-// This step's neighbour lists (neighbor_list.h) from the sorted particles: counts, their total (read by the
-// host to size the index array, which only grows), their running sum (the row offsets), then the candidates.
-// The offsets are uint32: a step whose candidates number more than 2^32 - 1 (about 120M particles at ~35
-// candidates each), or whose index array cannot be allocated, gives the lists up for the rest of the run and
-// searches the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
+#ifdef PBF_BACKEND_CUDA
+constexpr bool kSlotMajorLists = true;    // a warp's 32 particles read slot k of their rows together
+#else
+constexpr bool kSlotMajorLists = false;   // a thread walks its particle's row
+#endif
+
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores
+// each particle's candidates in rows of the current width; one reduction (read by the host) gives their total
+// and the longest row. A row longer than the width widens the rows (to the longest plus an eighth, rounded up
+// to 8) and fills them again; a width that grew stays. Rows of n x width entries that would exceed 2^32 - 1 entries
+// (about 70M particles at a width of 60) or cannot be allocated give the lists up for the rest of the run: the
+// passes search the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
 template <class Policy>
 void build_neighbor_lists(SolverData& d) {
     d.lists_ready = false;
     if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return;
     CellRanges fl = d.fluid_ranges(d.pred);
     const float skin = kNeighborSkin * d.p.h0;
-    parallel_for(d.n, CountNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, raw(d.uint_tmp)});
-    const unsigned long long total = reduce_over(d.n, CountAt{raw(d.uint_tmp)}, 0ull, thrust::plus<unsigned long long>());
-    d.list_entries = total;
-    if (total > 0xffffffffull) {
-        d.give_up_lists();
-        return;
-    }
-    if (total > d.nbr_index.size()) {
-        try {
-            d.nbr_index.clear();
-            d.nbr_index.shrink_to_fit();
-            d.nbr_index.resize(std::min<unsigned long long>(total + total / 4, 0xffffffffull));
-        } catch (const std::bad_alloc&) {
+    const uint32_t n = uint32_t(d.n);
+    for (int attempt = 0; attempt < 2; ++attempt) {
+        const unsigned long long entries = (unsigned long long)(n) * d.nbr_width;
+        if (entries > 0xffffffffull) {
             d.give_up_lists();
             return;
         }
+        if (entries > d.nbr_index.size()) {
+            try {
+                d.nbr_index.clear();
+                d.nbr_index.shrink_to_fit();
+                d.nbr_index.resize(std::size_t(entries));
+            } catch (const std::bad_alloc&) {
+                d.give_up_lists();
+                return;
+            }
+        }
+        const uint32_t row = kSlotMajorLists ? 1u : d.nbr_width, slot = kSlotMajorLists ? n : 1u;
+        parallel_for(n, FillNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, d.nbr_width, row, slot,
+                                              raw(d.nbr_count), raw(d.nbr_index)});
+        const ListSize size = reduce_over(n, ListSizeOf{raw(d.nbr_count)}, ListSize{0ull, 0u}, ListSizeAdd{});
+        d.list_entries = size.total;
+        if (size.longest <= d.nbr_width) {
+            d.nbr_row = row;
+            d.nbr_slot = slot;
+            d.lists_ready = true;
+            return;
+        }
+        d.nbr_width = (size.longest + size.longest / 8 + 7u) / 8u * 8u;
     }
-    thrust::inclusive_scan(exec(), d.uint_tmp.begin(), d.uint_tmp.begin() + d.n, d.nbr_offset.begin() + 1);
-    parallel_for(d.n, FillNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, raw(d.nbr_offset), raw(d.nbr_index)});
-    d.lists_ready = true;
 }
 
 }  // namespace PBF_BACKEND_NS

@@ -87,10 +87,10 @@ struct AdaptivePolicy {
 template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
-    if (fluid.nbr_offset) {
+    if (fluid.nbr_count) {
         const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
-        for (uint32_t k = fluid.nbr_offset[i], e = fluid.nbr_offset[i + 1]; k < e; ++k) {
-            uint32_t j = fluid.nbr_index[k];
+        for (uint32_t k = 0, e = fluid.nbr_count[i]; k < e; ++k) {
+            uint32_t j = fluid.candidate(i, k);
             Float4 pj = fluid.pos[j];
             Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
             float r2 = dot(r, r);

@@ -1,9 +1,17 @@
 // Per-step neighbour lists (Verlet lists with a skin; Verlet 1967, as SPH codes such as SPlisHSPlasH keep them):
 // right after the particles are sorted by cell, each particle's candidates within (support + skin) are found once
 // with the policy's cell search (kernel_policy.h: for_each_candidate) and stored in the order the search visits
-// them, in compressed rows (nbr_offset, nbr_index). The step's ~20 neighbour passes (density iterations, XSPH and
-// vorticity, smoothing, the velocity projection's conjugate gradients) then read each particle's ~45 candidates
-// instead of scanning the ~200 particles of 27 cells (or the nested sub-cells of adaptive runs) every time.
+// them. The step's ~20 neighbour passes (density iterations, XSPH and vorticity, smoothing, the velocity
+// projection's conjugate gradients) then read each particle's ~45 candidates instead of scanning the ~200
+// particles of 27 cells (or the nested sub-cells of adaptive runs) every time.
+//
+// Layout: rows of a fixed width W (ELLPACK, as GPU sparse-matrix formats keep them), so one pass finds, counts
+// and stores the candidates (FillNeighbors) without a counting pass and a scan before it. On the GPU the rows
+// are stored slot-major (candidate k of particle i at k n + i): the 32 lanes of a warp, 32 consecutive
+// particles, read and write slot k of their rows in one coalesced transaction. On the CPU they are row-major
+// (i W + k): one thread walks one particle's row through the cache. W is the longest row a build found (plus an
+// eighth, rounded up to 8); a build that finds a row longer than W widens the rows and fills them again.
+// Measured against the compressed rows with a counting pass that they replace: docs/benchmarks.md.
 //
 // The passes keep the search's own test (|r| below the pair's support) on the positions they see, so the lists
 // only change which particles are looked at. Within a step positions move only by the density constraint's
@@ -47,33 +55,24 @@ PBF_HD inline void for_each_list_candidate(const GridGeometry& grid, const CellR
     });
 }
 
-// count[i] = candidates of particle i.
-template <class Policy>
-struct CountNeighbors {
-    GridGeometry grid;
-    CellRanges fluid;
-    LevelRadii radii;
-    float h0, skin;
-    uint32_t* count;
-    PBF_HD void operator()(uint32_t i) const {
-        uint32_t c = 0;
-        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t) { ++c; });
-        count[i] = c;
-    }
-};
-
-// index[offset[i] ..] = the candidates of particle i, in search order.
+// count[i] = the candidates of particle i; the first `width` of them stored in its row, in search order.
 template <class Policy>
 struct FillNeighbors {
     GridGeometry grid;
     CellRanges fluid;
     LevelRadii radii;
     float h0, skin;
-    const uint32_t* offset;
+    uint32_t width, row, slot;   // row i starts at index + i row; slot k is k slot further
+    uint32_t* count;
     uint32_t* index;
     PBF_HD void operator()(uint32_t i) const {
-        uint32_t k = offset[i];
-        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) { index[k++] = j; });
+        uint32_t c = 0;
+        uint32_t* out = index + std::size_t(i) * row;
+        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) {
+            if (c < width) out[std::size_t(c) * slot] = j;
+            ++c;
+        });
+        count[i] = c;
     }
 };
 

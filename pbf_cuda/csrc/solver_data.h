@@ -35,9 +35,11 @@ struct SolverData {
     dvec<uint32_t> id, uint_tmp, keys, perm, cell_start, cell_end;
     dvec<uint32_t> sub_start, sub_end;    // adaptive runs: nested sub-cell ranges (grid.h)
     dvec<float> sub_radius, cell_radius;  // adaptive runs: largest kernel radius per sub-cell and per cell
-    dvec<uint32_t> nbr_offset, nbr_index; // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
+    dvec<uint32_t> nbr_count, nbr_index;  // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
+    uint32_t nbr_width = 32;              // the lists' row width (grows to the longest row seen, grid_launch.h)
+    uint32_t nbr_row = 0, nbr_slot = 0;   // their layout: candidate k of particle i at i nbr_row + k nbr_slot
     bool lists_ready = false;             // the lists belong to this step's sorted particles
-    bool lists_given_up = false;          // too many candidates for uint32 offsets, or no memory (grid_launch.h)
+    bool lists_given_up = false;          // more than 2^32 - 1 entries, or no memory (grid_launch.h)
     unsigned long long list_entries = 0;  // candidates in the last lists built
     void give_up_lists() {
         lists_given_up = true;
@@ -71,8 +73,10 @@ struct SolverData {
                                                raw(sub_end), raw(sub_radius), raw(cell_radius), raw(keys)}
                                   : CellRanges{raw(positions), raw(cell_start), raw(cell_end)};
         if (lists_ready) {
-            r.nbr_offset = raw(nbr_offset);
+            r.nbr_count = raw(nbr_count);
             r.nbr_index = raw(nbr_index);
+            r.nbr_row = nbr_row;
+            r.nbr_slot = nbr_slot;
         }
         return r;
     }
@@ -90,7 +94,7 @@ struct SolverData {
         lambda.resize(cap); density.resize(cap);
         keys.resize(cap); perm.resize(cap);
         float_tmp.resize(cap);
-        if (p.neighbor_list) nbr_offset.assign(cap + 1, 0u);   // nbr_offset[0] stays 0
+        if (p.neighbor_list) nbr_count.resize(cap);
         if (p.vorticity > 0.0f) omega.resize(cap);
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);

@@ -211,6 +211,7 @@ public:
         s.n_particles = d.n;
         s.neighbor_lists = d.p.neighbor_list && !d.lists_given_up;
         s.neighbor_candidates = s.neighbor_lists && d.step > 0 ? d.list_entries : 0;
+        s.neighbor_row_width = s.neighbor_lists && d.step > 0 ? d.nbr_width : 0;
         if (d.n > 0) {
             Reduced r = reduce_checks(d);
             s.density_error_mean = r.err_sum / double(d.n);
