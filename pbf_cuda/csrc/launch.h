@@ -4,7 +4,9 @@
 // PBF_BACKEND_CUDA for nvcc), and this header opens that namespace:
 //   parallel_for(n, f)          f(i) for i in [0, n): one CUDA thread per item, or a Thrust for_each (OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
-//   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce)
+//   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
+//   reduce_into(n, f, init, op, out)  the same into *out in device memory: the host does not wait (CUB)
+//   run_once(f)                 f() once: a one-thread kernel on the GPU (scalar work on device memory)
 //   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
 //
 // On the GPU every call is asynchronous on the default stream: exec() is Thrust's par_nosync with a caching
@@ -43,7 +45,10 @@
 #include "common.h"
 #include "solver_api.h"
 
+#include <thrust/iterator/transform_iterator.h>
+
 #ifdef PBF_BACKEND_CUDA
+#include <cub/device/device_reduce.cuh>
 #include <cuda_runtime.h>
 #endif
 
@@ -53,6 +58,9 @@ namespace PBF_BACKEND_NS {
 #ifdef THRUST_CUB_WRAPPED_NAMESPACE
 // Each backend wraps Thrust/CUB in its own namespace (set by CMake) so the two never collide.
 namespace thrust = ::THRUST_CUB_WRAPPED_NAMESPACE::thrust;
+#ifdef PBF_BACKEND_CUDA
+namespace cub = ::THRUST_CUB_WRAPPED_NAMESPACE::cub;
+#endif
 #endif
 
 template <class T>
@@ -143,6 +151,35 @@ T reduce_over(std::size_t n, const F& f, T init, Op op) {
     return thrust::transform_reduce(exec(), thrust::counting_iterator<uint32_t>(0),
                                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f, init, op);
 }
+
+// The same reduction written to *out (device memory) without the host waiting for it: on the GPU CUB's
+// DeviceReduce over the transformed range (a fixed tree, no atomics: the same value on every run), with its
+// temporary storage from the caching allocator; on the CPU the value itself.
+template <class T, class F, class Op>
+void reduce_into(std::size_t n, const F& f, T init, Op op, T* out) {
+#ifdef PBF_BACKEND_CUDA
+    auto in = thrust::make_transform_iterator(thrust::counting_iterator<uint32_t>(0), f);
+    std::size_t bytes = 0;
+    cub::DeviceReduce::Reduce(nullptr, bytes, in, out, static_cast<long long>(n), op, init);
+    bytes = bytes < 16 ? 16 : bytes;
+    char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
+    cub::DeviceReduce::Reduce(tmp, bytes, in, out, static_cast<long long>(n), op, init);
+    temp_allocator().deallocate(tmp, bytes);
+#else
+    *out = reduce_over(n, f, init, op);
+#endif
+}
+
+#ifdef PBF_BACKEND_CUDA
+template <class F>
+__global__ void once_kernel(F f) { f(); }
+
+template <class F>
+void run_once(const F& f) { once_kernel<<<1, 1>>>(f); }
+#else
+template <class F>
+void run_once(const F& f) { f(); }
+#endif
 
 // f(t, team) for t in [0, n): one team per item (common.h), a warp on the GPU, a thread on the CPU.
 #ifdef PBF_BACKEND_CUDA

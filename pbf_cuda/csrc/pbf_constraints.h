@@ -198,7 +198,9 @@ struct ApplyJT {
     const float* p;
     Float4* g;
     const float* correction;   // L, read when Corrected
+    const int* stop = nullptr; // *stop set: nothing to do (the conjugate gradients have stopped)
     PBF_HD void operator()(uint32_t i) const {
+        if (stop && *stop) return;
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
@@ -236,7 +238,9 @@ struct ApplyJ {
     float* q;
     float* diag;               // nullptr: not written
     const float* correction;   // L, read when Corrected
+    const int* stop = nullptr; // *stop set: nothing to do (the conjugate gradients have stopped)
     PBF_HD void operator()(uint32_t i) const {
+        if (stop && *stop) return;
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
@@ -405,6 +409,16 @@ struct Double2 {
 };
 struct Double2Add {
     PBF_HD Double2 operator()(const Double2& a, const Double2& b) const { return Double2{a.x + b.x, a.y + b.y}; }
+};
+
+// The scalars of the velocity projection's conjugate gradients, kept in device memory (pbf_constraints_launch.h:
+// solve_divergence): the reductions write them, one-thread kernels turn them into the step size and the new
+// direction's weight, and the vector kernels read them, so the host never waits for a dot product.
+struct CgState {
+    double rz;          // r . z of the current residual (z = D^-1 r)
+    Double2 dots;       // the last reduction: (p . A p, p . D p) or (r . z, r . r)
+    float alpha, beta;  // the step along p, the weight of the old direction in the new one
+    int stop;           // 1: converged or stalled; the remaining iterations leave v and mu as they are
 };
 
 // y -= shift, kept inside the floor and the lid (the density solve's share of the column drift), m.

@@ -46,7 +46,9 @@ struct UpdateVelocity {
     }
 };
 
-// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner).
+// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner). The scalars
+// live in a CgState in device memory (pbf_constraints.h); the vector kernels read them and do nothing once
+// state->stop is set.
 struct CgStart {
     float* r;
     const float* diag;
@@ -56,23 +58,63 @@ struct CgStart {
         p[i] = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
     }
 };
-struct CgDot {
-    const float* a;
-    const float* b;
-    PBF_HD double operator()(uint32_t i) const { return double(a[i]) * double(b[i]); }
+// (a . b, c . d) in double.
+struct CgDots {
+    const float *a, *b, *c, *d;
+    PBF_HD Double2 operator()(uint32_t i) const {
+        return Double2{double(a[i]) * double(b[i]), double(c[i]) * double(d[i])};
+    }
 };
-// r . D^-1 r (inv_diag set), or p . D p (diag_mul set).
-struct CgPrecDot {
+// (p . A p, p . D p): q = A p.
+struct CgDirectionDots {
+    const float* p;
+    const float* q;
+    const float* diag;
+    PBF_HD Double2 operator()(uint32_t i) const {
+        return Double2{double(p[i]) * double(q[i]), double(p[i]) * p[i] * diag[i]};
+    }
+};
+// (r . D^-1 r, r . r).
+struct CgResidualDots {
     const float* r;
-    const float* inv_diag;
-    const float* diag_mul;
-    PBF_HD double operator()(uint32_t i) const {
-        if (diag_mul) return double(r[i]) * r[i] * diag_mul[i];
-        return inv_diag[i] > 0.0f ? double(r[i]) * r[i] / inv_diag[i] : 0.0;
+    const float* diag;
+    PBF_HD Double2 operator()(uint32_t i) const {
+        return Double2{diag[i] > 0.0f ? double(r[i]) * r[i] / diag[i] : 0.0, double(r[i]) * double(r[i])};
+    }
+};
+// The first residual: rz = r . z; stop where it is zero or already below the tolerance (rr <= tol2).
+struct CgBegin {
+    CgState* s;
+    double tol2;
+    PBF_HD void operator()() const {
+        s->rz = s->dots.x;
+        s->stop = !(s->rz > 0.0) || (tol2 > 0.0 && s->dots.y <= tol2);
+    }
+};
+// alpha = rz / p.A p. A direction whose Rayleigh quotient p.A p / p.D p is tiny lies in the near-null space of A
+// (modes the SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
+// be huge and arbitrary: stop there.
+struct CgStepSize {
+    CgState* s;
+    PBF_HD void operator()() const {
+        if (s->stop) return;
+        if (!(s->dots.x > 1e-5 * s->dots.y)) s->stop = 1;
+        else s->alpha = float(s->rz / s->dots.x);
+    }
+};
+// beta = rz_new / rz for the next direction; stop where the new residual is below the tolerance.
+struct CgNextDirection {
+    CgState* s;
+    double tol2;
+    PBF_HD void operator()() const {
+        if (s->stop) return;
+        s->beta = float(s->dots.x / s->rz);
+        s->rz = s->dots.x;
+        s->stop = !(s->rz > 0.0) || (tol2 > 0.0 && s->dots.y <= tol2);
     }
 };
 struct CgUpdate {
-    float alpha;
+    const CgState* s;
     const Float4* g;
     const float* q;
     const float* p;
@@ -80,6 +122,8 @@ struct CgUpdate {
     float* r;
     float* mu;
     PBF_HD void operator()(uint32_t i) const {
+        if (s->stop) return;
+        const float alpha = s->alpha;
         Float4 a = v[i], b = g[i];
         v[i] = Float4{a.x + alpha * b.x, a.y + alpha * b.y, a.z + alpha * b.z, a.w};
         r[i] -= alpha * q[i];
@@ -87,13 +131,14 @@ struct CgUpdate {
     }
 };
 struct CgDirection {
-    float beta;
+    const CgState* s;
     const float* r;
     const float* diag;
     float* p;
     PBF_HD void operator()(uint32_t i) const {
+        if (s->stop) return;
         float z = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
-        p[i] = z + beta * p[i];
+        p[i] = z + s->beta * p[i];
     }
 };
 
@@ -213,6 +258,9 @@ void viscosity_vorticity(SolverData& d) {
 // The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
 // Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
 // v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
+// The host queues all divergence_iterations iterations without reading a scalar: the dot products go to
+// d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
+// (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
 void solve_divergence(SolverData& d, const CellRanges& bnd) {
     CellRanges fl = d.fluid_ranges(d.pred);
@@ -227,6 +275,8 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     Float4* g = raw(d.vel_tmp);
     Float4* v = raw(d.vel);
     float* mu = raw(d.cg_mu);
+    CgState* s = raw(d.cg_state);
+    const int* stop = &s->stop;
     float* L = nullptr;   // gradient correction (pbf_constraints.h), at this step's predicted positions
     if constexpr (Corrected) {
         L = raw(d.grad_correction);
@@ -237,32 +287,22 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     // r = -J v, z = r / diag, p = z
     parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L});
     parallel_for(n, CgStart{r, diag, p});
-    double rz = reduce_over(n, CgDot{r, p}, 0.0, thrust::plus<double>());
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
     // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
     const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
-    auto converged = [&]() {
-        if (!(tol2 > 0.0)) return false;
-        double rr = reduce_over(n, CgDot{r, r}, 0.0, thrust::plus<double>());
-        return rr <= tol2;
-    };
-    for (int it = 0; it < d.p.divergence_iterations && rz > 0.0 && !converged(); ++it) {
-        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L});           // g = M^-1 J^T p
-        parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L});   // q = A p
-        double pq = reduce_over(n, CgDot{p, q}, 0.0, thrust::plus<double>());
-        // A direction whose Rayleigh quotient pq / p.D.p is tiny lies in the near-null space of A (modes the
-        // SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
-        // be huge and arbitrary. Stop there.
-        double pdp = reduce_over(n, CgPrecDot{p, nullptr, diag}, 0.0, thrust::plus<double>());
-        if (!(pq > 1e-5 * pdp)) break;
-        float alpha = float(rz / pq);
-        // v += alpha g; r -= alpha q; the new z = r / diag is formed inside the next dot product
-        parallel_for(n, CgUpdate{alpha, g, q, p, v, r, mu});
+    reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);   // (r . z, r . r)
+    run_once(CgBegin{s, tol2});
+    for (int it = 0; it < d.p.divergence_iterations; ++it) {
+        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
+        parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
+        reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+        run_once(CgStepSize{s});
+        // v += alpha g; r -= alpha q; mu += alpha p
+        parallel_for(n, CgUpdate{s, g, q, p, v, r, mu});
         if (it + 1 == d.p.divergence_iterations) break;
-        double rz_new = reduce_over(n, CgPrecDot{r, diag, nullptr}, 0.0, thrust::plus<double>());
-        float beta = float(rz_new / rz);
-        rz = rz_new;
-        parallel_for(n, CgDirection{beta, r, diag, p});                               // p = z + beta p
+        reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+        run_once(CgNextDirection{s, tol2});
+        parallel_for(n, CgDirection{s, r, diag, p});                                  // p = z + beta p
     }
 }
 

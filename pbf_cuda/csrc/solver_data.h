@@ -50,6 +50,7 @@ struct SolverData {
     dvec<float> lambda, density, float_tmp, temperature, vapor, cloud, smooth_out[3];
     dvec<float> cg_r, cg_p, cg_q, cg_diag;   // velocity projection (conjugate gradients)
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
+    dvec<CgState> cg_state;                  // its scalars (one), in device memory
     dvec<float> shift_y;                     // the density constraint's vertical shift of each particle this step, m
     double shift_heat = 0.0;                 // sum m shift_change of it (the heat it books), kg K
     dvec<float> grad_correction;             // L_i (symmetric 3x3, 6 floats per particle) of the projection's Jacobian
@@ -99,6 +100,7 @@ struct SolverData {
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);
             cg_mu.assign(cap, 0.0f);
+            cg_state.resize(1);
             if (p.gradient_correction) grad_correction.resize(6 * cap);
             if (p.shift_keeps_anomaly && p.thermodynamics) shift_y.resize(cap);
         }
