@@ -84,18 +84,37 @@ struct AdaptivePolicy {
 // candidates come from i's list, in the order the search found them, and f is called where |r| is below the
 // pair's support max(h_i, h_j) (h0 in uniform runs: the search's own test); the search's wider cell-level tests
 // in adaptive runs only added pairs whose kernels are exactly zero.
+// The list is read kListBatch candidates at a time: their indices, then their positions, then the pairs in list
+// order, so that a thread has several independent gathers in flight instead of one index-then-position chain
+// per pair (the passes are bound by the latency of those gathers, docs/benchmarks.md).
+#ifndef PBF_LIST_BATCH
+#define PBF_LIST_BATCH 2
+#endif
+constexpr uint32_t kListBatch = PBF_LIST_BATCH;
+
 template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
     if (fluid.nbr_count) {
         const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
-        for (uint32_t k = 0, e = fluid.nbr_count[i]; k < e; ++k) {
-            uint32_t j = fluid.candidate(i, k);
-            Float4 pj = fluid.pos[j];
+        auto visit = [&](uint32_t j, const Float4& pj) {
             Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
             float r2 = dot(r, r);
             float hj = Policy::radius(radii, h0, pj.w);
             if (within_pair_support(r2, hi, hj, 0.0f)) f(j, r, r2, pj.w, hj);
+        };
+        const uint32_t e = fluid.nbr_count[i];
+        uint32_t k = 0;
+        for (; k + kListBatch <= e; k += kListBatch) {
+            uint32_t j[kListBatch];
+            Float4 pj[kListBatch];
+            for (uint32_t b = 0; b < kListBatch; ++b) j[b] = fluid.candidate(i, k + b);
+            for (uint32_t b = 0; b < kListBatch; ++b) pj[b] = fluid.pos[j[b]];
+            for (uint32_t b = 0; b < kListBatch; ++b) visit(j[b], pj[b]);
+        }
+        for (; k < e; ++k) {
+            uint32_t j = fluid.candidate(i, k);
+            visit(j, fluid.pos[j]);
         }
         return;
     }
