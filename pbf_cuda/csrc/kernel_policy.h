@@ -88,7 +88,7 @@ struct AdaptivePolicy {
 // order, so that a thread has several independent gathers in flight instead of one index-then-position chain
 // per pair (the passes are bound by the latency of those gathers, docs/benchmarks.md).
 #ifndef PBF_LIST_BATCH
-#define PBF_LIST_BATCH 2
+#define PBF_LIST_BATCH 4
 #endif
 constexpr uint32_t kListBatch = PBF_LIST_BATCH;
 

@@ -120,8 +120,14 @@ inline auto exec() { return thrust::device; }
 #endif
 
 #ifdef PBF_BACKEND_CUDA
+// PBF_MIN_BLOCKS (a build option): at least that many blocks of 128 threads per SM, i.e. a register cap.
+#ifdef PBF_MIN_BLOCKS
+#define PBF_LAUNCH_BOUNDS __launch_bounds__(128, PBF_MIN_BLOCKS)
+#else
+#define PBF_LAUNCH_BOUNDS
+#endif
 template <class F>
-__global__ void for_each_kernel(uint32_t n, F f) {
+__global__ void PBF_LAUNCH_BOUNDS for_each_kernel(uint32_t n, F f) {
     uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i < n) f(i);
 }
