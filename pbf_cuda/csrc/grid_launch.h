@@ -190,5 +190,20 @@ void build_neighbor_lists(SolverData& d) {
     }
 }
 
+// Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
+// (NarrowNeighbors, neighbor_list.h), where enough passes follow to pay for the narrowing pass: the velocity
+// projection's 2 (divergence_iterations + 1), XSPH / viscosity, vorticity confinement, smoothing.
+template <class Policy>
+void narrow_neighbor_lists(SolverData& d) {
+    if (!d.lists_ready) return;
+    const Params& p = d.p;
+    const int passes = (p.velocity_projection ? 2 * (p.divergence_iterations + 1) : 0) +
+                       (p.xsph > 0.0f || p.viscosity > 0.0f || p.vorticity > 0.0f) + (p.vorticity > 0.0f) +
+                       (d.smoothing ? 1 : 0);
+    if (passes < 3) return;
+    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, raw(d.nbr_count),
+                                              raw(d.nbr_index)});
+}
+
 }  // namespace PBF_BACKEND_NS
 }  // namespace pbf

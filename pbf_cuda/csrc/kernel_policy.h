@@ -92,16 +92,26 @@ struct AdaptivePolicy {
 #endif
 constexpr uint32_t kListBatch = PBF_LIST_BATCH;
 
+// r = x_i - x_j (minimum image) and whether the pair lies within its support: the one test every list pass and
+// the lists' narrowing (neighbor_list.h) make, written once so that both see the same pairs.
+template <class Policy>
+PBF_HD inline bool supported_pair(const GridGeometry& g, const LevelRadii& radii, float h0, Vec3 q, float hi,
+                                  const Float4& pj, Vec3& r, float& r2, float& hj) {
+    r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+    r2 = dot(r, r);
+    hj = Policy::radius(radii, h0, pj.w);
+    return within_pair_support(r2, hi, hj, 0.0f);
+}
+
 template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
     if (fluid.nbr_count) {
         const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
         auto visit = [&](uint32_t j, const Float4& pj) {
-            Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-            float r2 = dot(r, r);
-            float hj = Policy::radius(radii, h0, pj.w);
-            if (within_pair_support(r2, hi, hj, 0.0f)) f(j, r, r2, pj.w, hj);
+            Vec3 r;
+            float r2, hj;
+            if (supported_pair<Policy>(g, radii, h0, q, hi, pj, r, r2, hj)) f(j, r, r2, pj.w, hj);
         };
         const uint32_t e = fluid.nbr_count[i];
         uint32_t k = 0;

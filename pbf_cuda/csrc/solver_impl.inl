@@ -60,6 +60,7 @@ public:
         d.clock.begin(kPhaseSolver);
         const CellRanges walls = d.boundary_ranges();
         solve_density<Policy>(d, walls);             // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
+        narrow_neighbor_lists<Policy>(d);            // x* is final: the lists keep the pairs within support
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
         viscosity_vorticity<Policy>(d);              // XSPH, viscosity, vorticity confinement
         d.clock.end(kPhaseSolver);
