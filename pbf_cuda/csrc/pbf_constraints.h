@@ -421,14 +421,17 @@ struct CgState {
     int stop;           // 1: converged or stalled; the remaining iterations leave v and mu as they are
 };
 
-// y -= shift, kept inside the floor and the lid (the density solve's share of the column drift), m.
+// y -= shift, kept inside the floor and the lid (the density solve's share of the column drift), m. The shift is
+// read from device memory (ColumnShift, pbf_constraints_launch.h); where the column has no mass it stays put.
 struct RemoveVerticalShift {
     Float4* pos;
-    float shift;
+    const float* shift;
+    const Double2* mass_sums;   // .y: sum m
     float top;
     PBF_HD void operator()(uint32_t i) const {
+        if (!(mass_sums->y > 0.0)) return;
         Float4 x = pos[i];
-        float y = x.y - shift;
+        float y = x.y - *shift;
         y = y < 0.0f ? 0.0f : (y > top ? top : y);
         pos[i] = Float4{x.x, y, x.z, x.w};
     }
@@ -445,13 +448,15 @@ struct VerticalMomentum {
     }
 };
 
-// u_y -= drift, m/s.
+// u_y -= drift, m/s (read from device memory; no change where the column has no mass).
 struct RemoveVerticalDrift {
     Float4* vel;
-    float drift;
+    const float* drift;
+    const Double2* mass_sums;   // .y: sum m
     PBF_HD void operator()(uint32_t i) const {
+        if (!(mass_sums->y > 0.0)) return;
         Float4 u = vel[i];
-        vel[i] = Float4{u.x, u.y - drift, u.z, u.w};
+        vel[i] = Float4{u.x, u.y - *drift, u.z, u.w};
     }
 };
 

@@ -142,6 +142,19 @@ struct CgDirection {
     }
 };
 
+// The density solve's net vertical shift (sum m y after - before) / sum m, m, and the column's drift
+// sum m u_y / sum m, m/s, from their sums in device memory (0 where the column has no mass).
+struct ColumnShift {
+    StepSums* s;
+    PBF_HD void operator()() const {
+        s->shift = s->shift_before.y > 0.0 ? float((s->shift_after.x - s->shift_before.x) / s->shift_before.y) : 0.0f;
+    }
+};
+struct ColumnDrift {
+    StepSums* s;
+    PBF_HD void operator()() const { s->drift = s->column.y > 0.0 ? float(s->column.x / s->column.y) : 0.0f; }
+};
+
 struct AddVelocity {
     const Float4* dv;
     Float4* vel;
@@ -213,22 +226,22 @@ void solve_density(SolverData& d, const CellRanges& walls) {
     // (as the column drift is for velocities; README, Shift drift), subtracted from every particle afterwards.
     // VerticalMomentum with the positions in place of the velocities sums (m y, m).
     const bool closed_column = d.p.velocity_projection && d.p.remove_shift_drift && !d.p.periodic[1] && d.n > 0;
-    const Double2 before = closed_column ? reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)},
-                                                       Double2{0.0, 0.0}, Double2Add{}) : Double2{0.0, 0.0};
+    StepSums* sums = raw(d.step_sums);
+    if (closed_column)
+        reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_before);
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
         parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }
-    if (closed_column && before.y > 0.0) {
-        const Double2 after = reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0},
-                                          Double2Add{});
-        parallel_for(d.n, RemoveVerticalShift{raw(d.pred), float((after.x - before.x) / before.y), d.grid.domain[1]});
+    if (closed_column) {
+        reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_after);
+        run_once(ColumnShift{sums});
+        parallel_for(d.n, RemoveVerticalShift{raw(d.pred), &sums->shift, &sums->shift_before, d.grid.domain[1]});
     }
-    d.shift_heat = keep_shift ? reduce_over(d.n, VerticalShift{d.atm, raw(d.pred), raw(d.shift_y)}, 0.0,
-                                            thrust::plus<double>())
-                              : 0.0;
+    if (keep_shift)
+        reduce_into(d.n, VerticalShift{d.atm, raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>(), &sums->shift_heat);
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).
@@ -309,8 +322,10 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
 // Column drift (pbf_constraints.h): u_y -= sum m u_y / sum m.
 inline void remove_column_drift(SolverData& d) {
     if (d.n == 0) return;
-    Double2 sums = reduce_over(d.n, VerticalMomentum{raw(d.pred), raw(d.vel)}, Double2{0.0, 0.0}, Double2Add{});
-    if (sums.y > 0.0) parallel_for(d.n, RemoveVerticalDrift{raw(d.vel), float(sums.x / sums.y)});
+    StepSums* sums = raw(d.step_sums);
+    reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.vel)}, Double2{0.0, 0.0}, Double2Add{}, &sums->column);
+    run_once(ColumnDrift{sums});
+    parallel_for(d.n, RemoveVerticalDrift{raw(d.vel), &sums->drift, &sums->column});
 }
 
 // The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.

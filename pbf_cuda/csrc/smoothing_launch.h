@@ -15,12 +15,13 @@ inline bool smoothing_active(const Params& p) {
     return p.thermodynamics && p.kappa > 0.0f && (p.smooth_fields[0] || p.smooth_fields[1] || p.smooth_fields[2]);
 }
 
-// Smooths the fields and returns the change of sum m T it made (kg K; 0 up to rounding: the pairwise form
-// conserves it), for the step budget.
+// Smooths the fields; the budget sums before and after the pass go to the step's StepSums (the change of sum m T
+// it made, kg K, is 0 up to rounding: the pairwise form conserves it).
 template <class Policy>
-double smooth_fields(SolverData& d) {
-    if (!d.smoothing) return 0.0;
-    BudgetSums before = reduce_budget(d, d.pred, false, false);
+void smooth_fields(SolverData& d) {
+    if (!d.smoothing) return;
+    StepSums* sums = raw(d.step_sums);
+    reduce_budget_into(d, d.pred, false, false, &sums->before_smoothing);
     d.clock.begin(kPhaseSmoothing);
     dvec<float>* fields[3] = {&d.temperature, &d.vapor, &d.cloud};
     SmoothingFields sf{};
@@ -42,7 +43,7 @@ double smooth_fields(SolverData& d) {
     for (int k = 0; k < 3; ++k)
         if (d.p.smooth_fields[k]) fields[k]->swap(d.smooth_out[k]);
     d.clock.end(kPhaseSmoothing);
-    return reduce_budget(d, d.pred, false, false).mT - before.mT;
+    reduce_budget_into(d, d.pred, false, false, &sums->after_smoothing);
 }
 
 }  // namespace PBF_BACKEND_NS

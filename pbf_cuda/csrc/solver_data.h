@@ -6,6 +6,7 @@
 #include "launch.h"
 
 #include "adaptivity.h"
+#include "diagnostics.h"
 #include "grid.h"
 #include "kernels.h"
 #include "neighbor_list.h"
@@ -52,7 +53,6 @@ struct SolverData {
     dvec<float> cg_mu;                       // its solution, kept per particle for the next step's warm start
     dvec<CgState> cg_state;                  // its scalars (one), in device memory
     dvec<float> shift_y;                     // the density constraint's vertical shift of each particle this step, m
-    double shift_heat = 0.0;                 // sum m shift_change of it (the heat it books), kg K
     dvec<float> grad_correction;             // L_i (symmetric 3x3, 6 floats per particle) of the projection's Jacobian
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
@@ -61,6 +61,8 @@ struct SolverData {
     dvec<Float4> bpos;
     dvec<float> btemperature, bvapor, bcloud;
     dvec<uint32_t> bstart, bend;
+
+    dvec<StepSums> step_sums;                // this step's sums for the host (one record, diagnostics.h)
 
     PhaseClock clock;
     PhaseTotals totals;
@@ -95,6 +97,7 @@ struct SolverData {
         lambda.resize(cap); density.resize(cap);
         keys.resize(cap); perm.resize(cap);
         float_tmp.resize(cap);
+        step_sums.resize(1);
         if (p.neighbor_list) nbr_count.resize(cap);
         if (p.vorticity > 0.0f) omega.resize(cap);
         if (p.velocity_projection) {

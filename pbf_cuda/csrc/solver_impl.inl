@@ -44,12 +44,14 @@ public:
 
     // -- the step ----------------------------------------------------------------------------
     // One step (sections 3-5 of the paper; Macklin & Mueller 2013, Algorithm 1). The timers are the
-    // phases of Table 1 ("pbf" holds "neighbors" and "solver").
+    // phases of Table 1 ("pbf" holds "neighbors" and "solver"). The sums the host needs (the budget, the
+    // check) go to d.step_sums in device memory and are read once, after the step (step() below).
     template <class Policy>
     void do_step() {
         SolverData& d = d_;
         d.atm.diurnal = diurnal_factor(d.p, d.time + 0.5 * double(d.p.dt));   // C1 at the step's mid-time
-        const BudgetSums start = reduce_budget(d, d.pos, false, false);
+        StepSums* sums = raw(d.step_sums);
+        reduce_budget_into(d, d.pos, false, false, &sums->start);
 
         d.clock.begin(kPhasePBF);
         d.clock.begin(kPhaseNeighbors);
@@ -66,17 +68,16 @@ public:
         d.clock.end(kPhaseSolver);
         d.clock.end(kPhasePBF);
 
-        const double smoothing_heat = smooth_fields<Policy>(d);   // temperature smoothing (eq. 12-17)
-        const ForcingSums forcing = cloud_dynamics(d);            // heating .. buoyancy (eq. 5-11, C1-C3)
+        smooth_fields<Policy>(d);                    // temperature smoothing (eq. 12-17)
+        cloud_dynamics(d);                           // heating .. buoyancy (eq. 5-11, C1-C3)
 
         d.clock.begin(kPhasePBF);
         project_velocity<Policy>(d, walls);          // v = P(v + dt g), divergence-free at x* (velocity projection)
         d.clock.end(kPhasePBF);
-        const BudgetSums end = reduce_budget(d, d.pred, true, d.p.thermodynamics);
+        reduce_budget_into(d, d.pred, true, d.p.thermodynamics, &sums->end);
         d.clock.begin(kPhasePBF);
         commit_positions(d, d.pred, d.pos);          // x = x*, wrapped on periodic axes
         d.clock.end(kPhasePBF);
-        record_budget(d, start, end, smoothing_heat, forcing);
 
         d.step += 1;
         d.time += d.p.dt;
@@ -134,16 +135,22 @@ public:
     }
 
     // -- stepping ----------------------------------------------------------------------------
+    // Each step, then its sums (and the check's, where the step is checked) copied to the host in one read: the
+    // budget record and the check.
     std::string step(int n) override {
         for (int s = 0; s < n; ++s) {
             if (d_.p.adaptive) do_step<AdaptivePolicy>(); else do_step<UniformPolicy>();
+            const bool checked = d_.step % d_.p.check_every == 0;
+            if (checked && d_.n > 0) reduce_checks_into(d_, &raw(d_.step_sums)->checks);
+            const StepSums sums = d_.step_sums[0];
             d_.clock.collect(d_.totals);
 #ifdef PBF_BACKEND_CUDA
             cudaError_t err = cudaGetLastError();
             if (err != cudaSuccess) return std::string("cuda|") + cudaGetErrorString(err);
 #endif
-            if (d_.step % d_.p.check_every == 0) {
-                std::string failure = check(d_);
+            record_budget(d_, sums);
+            if (checked) {
+                std::string failure = check(d_, sums.checks);
                 if (!failure.empty()) return failure;
             }
         }

@@ -56,17 +56,14 @@ inline float diurnal_factor(const Params& p, double t) {
 }
 
 // Heating, adiabatic cooling, relaxation, phase transition, autoconversion, buoyancy (thermodynamics.h has the
-// order and why); returns the forcing terms' sums for the step budget (zero without thermodynamics).
-inline ForcingSums cloud_dynamics(SolverData& d) {
-    ForcingSums forcing{0.0, 0.0, 0.0};
-    if (!d.p.thermodynamics) return forcing;
+// order and why); the forcing terms' sums go to the step's StepSums, for the budget.
+inline void cloud_dynamics(SolverData& d) {
+    if (!d.p.thermodynamics) return;
     d.clock.begin(kPhaseCloudDynamics);
-    forcing = reduce_over(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred),
-                                             d.shift_y.empty() ? nullptr : raw(d.shift_y), raw(d.vel), raw(d.temperature),
-                                             raw(d.vapor), raw(d.cloud)},
-                          forcing, ForcingAdd{});
+    reduce_into(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred), d.shift_y.empty() ? nullptr : raw(d.shift_y),
+                                   raw(d.vel), raw(d.temperature), raw(d.vapor), raw(d.cloud)},
+                ForcingSums{0.0, 0.0, 0.0}, ForcingAdd{}, &raw(d.step_sums)->forcing);
     d.clock.end(kPhaseCloudDynamics);
-    return forcing;
 }
 
 }  // namespace PBF_BACKEND_NS
