@@ -2,12 +2,12 @@
 
     ncu --profile-from-start off --metrics gpu__time_duration.sum --csv \
         python3 benchmarks/profile_step.py run 1000000 growing > ncu_growing.csv
-    python3 benchmarks/profile_step.py table ncu_growing.csv growing 1000000 COMMIT >> step_profile.csv
+    python3 benchmarks/profile_step.py table ncu_growing.csv growing 1000000 COMMIT ["DEVICE"] >> step_profile.csv
 
 `run N SCENE` steps SCENE (resampled to N particles; N = 0 keeps the scene's own) three times, then
 profiles exactly one step (cudaProfilerStart/Stop around it, through cupy). `table` sums the kernels'
 durations by kernel (the functor a parallel_for launched, a reduction's functor, or the Thrust/CUB
-kernel) and writes rows scene, particles, kernel, launches, us, share, device, commit, method
+kernel) and writes rows (DEVICE names the GPU, an H100 where it is left out) scene, particles, kernel, launches, us, share, device, commit, method
 (reports/gpu/data/step_profile.csv; docs/benchmarks.md).
 """
 from __future__ import annotations
@@ -68,6 +68,6 @@ if __name__ == "__main__":
     if len(sys.argv) >= 4 and sys.argv[1] == "run":
         run(int(sys.argv[2]), sys.argv[3])
     elif len(sys.argv) >= 6 and sys.argv[1] == "table":
-        table(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5]).to_csv(sys.stdout, index=False)
+        table(sys.argv[2], sys.argv[3], int(sys.argv[4]), sys.argv[5], *sys.argv[6:7]).to_csv(sys.stdout, index=False)
     else:
         sys.exit(__doc__)
