@@ -42,6 +42,9 @@ def kernel_name(name: str) -> str:
     m = re.search(r"for_each_kernel<(?:pbf::|cuda_backend::)(\w+)", name)
     if m:
         return m.group(1)
+    m = re.search(r"once_kernel<(?:pbf::|cuda_backend::)(\w+)", name)
+    if m:
+        return "once " + m.group(1)
     m = re.search(r"(?:pbf::|cuda_backend::)(\w+)>", name)
     if m:
         return "reduction " + m.group(1)

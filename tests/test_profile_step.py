@@ -13,6 +13,7 @@ NCU = '''==PROF== Connected to process 1
 "1","1","python3","h","void cuda_backend::for_each_kernel<pbf::DensityLambda<pbf::UniformPolicy>>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","3,000"
 "2","1","python3","h","void cuda_backend::for_each_kernel<cuda_backend::Predict>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","usecond","1"
 "3","1","python3","h","void cub::detail::radix_sort::DeviceRadixSortOnesweepKernel<int>(int)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","1000"
+"4","1","python3","h","void cuda_backend::once_kernel<cuda_backend::CgStepSize>(T1)","1","7","(1, 1, 1)","(1, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","2000"
 '''
 
 
@@ -23,5 +24,6 @@ def test_kernels_are_summed_by_name_and_units(tmp_path):
     assert t.loc["DensityLambda", "launches"] == 2 and t.loc["DensityLambda", "us"] == pytest.approx(4.0)
     assert t.loc["Predict", "us"] == pytest.approx(1.0)
     assert t.loc["Thrust/CUB DeviceRadixSortOnesweepKernel", "us"] == pytest.approx(1.0)
+    assert t.loc["once CgStepSize", "us"] == pytest.approx(2.0)     # a one-thread kernel (run_once), not a reduction
     assert t["share"].sum() == pytest.approx(1.0, abs=1e-3)
     assert (t["commit"] == "abc").all()

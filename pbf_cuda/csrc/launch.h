@@ -13,7 +13,8 @@
 // allocator for the temporary storage of sorts, scans and reductions. Thrust's plain thrust::device policy
 // synchronises the stream after every algorithm and allocates (cudaMalloc / cudaFree, both synchronising) the
 // temporary storage of each one, so a step of ~100 launches waited for the GPU ~100 times. Only what the host
-// must read (a reduction's value, copy_if's count, the per-step timers) waits now. What made small scenes slow
+// must read waits now: the neighbour lists' size, the step's sums (one record, read once after the step with
+// the timers; reduce_into writes a sum to device memory without a wait), and copy_if's counts in adaptive runs. What made small scenes slow
 // was mostly occupancy, not these waits (parallel_for below; docs/benchmarks.md, "Launch overhead").
 #pragma once
 #ifndef PBF_BACKEND_NS

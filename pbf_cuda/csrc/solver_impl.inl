@@ -3,7 +3,8 @@
 // (backend_cpu.cpp). The including file defines PBF_BACKEND_NS (and PBF_BACKEND_CUDA for CUDA).
 //
 // The house of the C++ side (docs/architecture.md has the map):
-//   kernels: kernels.h, grid.h, pbf_constraints.h, smoothing.h, thermodynamics.h, adaptivity.h, noise.h
+//   kernels: kernels.h, grid.h, neighbor_list.h, pbf_constraints.h, smoothing.h, thermodynamics.h, adaptivity.h,
+//            diagnostics.h, noise.h
 //            (__host__ __device__ functors), kernel_policy.h (uniform vs adaptive runs as a policy type)
 //   launch:  launch.h (parallel_for, teams, reductions, timers), solver_data.h (the arrays), and one
 //            *_launch.h per phase beside its kernels: grid, pbf_constraints, smoothing, thermodynamics,
