@@ -150,7 +150,7 @@ constexpr bool kSlotMajorLists = false;   // a thread walks its particle's row
 // each particle's candidates in rows of the current width; one reduction (read by the host) gives their total
 // and the longest row. A row longer than the width widens the rows (to the longest plus an eighth, rounded up
 // to 8) and fills them again; a width that grew stays. Rows of n x width entries that would exceed 2^32 - 1 entries
-// (about 70M particles at a width of 60) or cannot be allocated give the lists up for the rest of the run: the
+// (about 75M particles at a width of 56) or cannot be allocated give the lists up for the rest of the run: the
 // passes search the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
 template <class Policy>
 void build_neighbor_lists(SolverData& d) {
@@ -188,21 +188,6 @@ void build_neighbor_lists(SolverData& d) {
         }
         d.nbr_width = (size.longest + size.longest / 8 + 7u) / 8u * 8u;
     }
-}
-
-// Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
-// (NarrowNeighbors, neighbor_list.h), where enough passes follow to pay for the narrowing pass: the velocity
-// projection's 2 (divergence_iterations + 1), XSPH / viscosity, vorticity confinement, smoothing.
-template <class Policy>
-void narrow_neighbor_lists(SolverData& d) {
-    if (!d.lists_ready) return;
-    const Params& p = d.p;
-    const int passes = (p.velocity_projection ? 2 * (p.divergence_iterations + 1) : 0) +
-                       (p.xsph > 0.0f || p.viscosity > 0.0f || p.vorticity > 0.0f) + (p.vorticity > 0.0f) +
-                       (d.smoothing ? 1 : 0);
-    if (passes < 3) return;
-    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, raw(d.nbr_count),
-                                              raw(d.nbr_index)});
 }
 
 }  // namespace PBF_BACKEND_NS

@@ -244,6 +244,25 @@ void solve_density(SolverData& d, const CellRanges& walls) {
         reduce_into(d.n, VerticalShift{d.atm, raw(d.pred), raw(d.shift_y)}, 0.0, thrust::plus<double>(), &sums->shift_heat);
 }
 
+// XSPH viscosity, physical viscosity or vorticity confinement switched on (viscosity_vorticity below).
+inline bool viscosity_vorticity_active(const Params& p) {
+    return p.xsph > 0.0f || p.vorticity > 0.0f || p.viscosity > 0.0f;
+}
+
+// Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
+// (NarrowNeighbors, neighbor_list.h), where enough neighbour passes follow at x* to pay for the narrowing pass:
+// the velocity projection's 2 (divergence_iterations + 1), XSPH / viscosity, vorticity confinement, smoothing.
+template <class Policy>
+void narrow_neighbor_lists(SolverData& d) {
+    if (!d.lists_ready) return;
+    const Params& p = d.p;
+    const int passes = (p.velocity_projection ? 2 * (p.divergence_iterations + 1) : 0) +
+                       (viscosity_vorticity_active(p) ? 1 : 0) + (p.vorticity > 0.0f ? 1 : 0) + (d.smoothing ? 1 : 0);
+    if (passes < 3) return;
+    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, raw(d.nbr_count),
+                                              raw(d.nbr_index)});
+}
+
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).
 inline void update_velocity(SolverData& d) {
     if (!d.p.velocity_projection) parallel_for(d.n, UpdateVelocity{raw(d.pos), raw(d.pred), raw(d.vel), 1.0f / d.p.dt});
@@ -253,7 +272,7 @@ inline void update_velocity(SolverData& d) {
 template <class Policy>
 void viscosity_vorticity(SolverData& d) {
     const Params& p = d.p;
-    if (!(p.xsph > 0.0f || p.vorticity > 0.0f || p.viscosity > 0.0f)) return;
+    if (!viscosity_vorticity_active(p)) return;
     const float dt = p.dt;
     CellRanges fl = d.fluid_ranges(d.pred);
     bool vort = p.vorticity > 0.0f;
