@@ -91,6 +91,7 @@ struct AdaptivePolicy {
 #define PBF_LIST_BATCH 4
 #endif
 constexpr uint32_t kListBatch = PBF_LIST_BATCH;
+static_assert(kListBatch >= 1 && kListBatch <= 16, "PBF_LIST_BATCH: candidates read at a time, 1 to 16 (4 measured best)");
 
 // r = x_i - x_j (minimum image) and whether the pair lies within its support: the one test every list pass and
 // the lists' narrowing (neighbor_list.h) make, written once so that both see the same pairs.
