@@ -295,6 +295,11 @@ def test_table1_row_is_ms_per_step_without_double_counting():
      ("thermal-68m-L4-t0.25", {"adaptive.criterion": "thermal", "adaptive.max_level": 4,
                                "adaptive.split_threshold": 0.075, "adaptive.merge_threshold": 0.0125,
                                "particles.spacing": 68.0})),
+    ({"best": {"name": "thermal-68m-L4-t0.25-e4", "criterion": "thermal", "spacing_m": 68.0, "max_level": 4,
+               "threshold_scale": 0.25, "adapt_every": 4}},
+     ("thermal-68m-L4-t0.25-e4", {"adaptive.criterion": "thermal", "adaptive.max_level": 4,
+                                  "adaptive.split_threshold": 0.075, "adaptive.merge_threshold": 0.0125,
+                                  "adaptive.every": 4, "particles.spacing": 68.0})),
 ])
 def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, best, expected):
     """Table 1 keeps the paper's four rows and, when the growing study's verdict names a best variant other

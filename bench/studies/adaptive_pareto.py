@@ -6,8 +6,9 @@ For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide dom
 * every adaptive variant (refinement criterion ``paper`` = eq. 20 on the cloud water, ``lookahead`` = eq. 20
   on the water a particle would hold after rising ``lookahead_height``, ``thermal`` = eq. 20 on the heat
   excess over the environment as cloud water) at two level-0 spacings (68 and 54 m) with max level 3, and
-  the :data:`FURTHER_VARIANTS` of ``thermal``: one level deeper from 68 m (``thermal-68m-L4``, finest 27 m)
-  and eq. 20's split/merge thresholds times 0.25 (``-t0.25``),
+  the :data:`FURTHER_VARIANTS` of ``thermal``: one level deeper from 68 m (``thermal-68m-L4``, finest 27 m),
+  eq. 20's split/merge thresholds times 0.25 (``-t0.25``), and splitting and merging every 4 steps instead of
+  the adaptive scenes' 2 (``-e4``),
 * a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
 
 each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
@@ -42,7 +43,8 @@ each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configura
 
     {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
      "min_stable_seeds": n,                             # the rule the verdict applied
-     "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "speedup_at_equal_error",
+     "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "adapt_every",
+                   "speedup_at_equal_error",
                    "error", "ms_per_step",
                    "particles", "cost_ratio_per_particle", "stable_seeds", "seeds"}],   # the qualifying ones
      "excluded": [{"name", "kind", "stable_seeds", "seeds", "reasons", ...}],
@@ -86,10 +88,12 @@ SCENES = ("growing", "cumulus")
 CRITERIA = ("paper", "lookahead", "thermal", "heated")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
-FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0),   # (criterion, level-0 spacing m, max_level, threshold scale):
-                    ("thermal", 68.0, 3, 0.25),  # one level deeper (finest 27 m from 68 m), and split/merge
-                    ("thermal", 54.0, 3, 0.25),  # thresholds at a quarter (eq. 20: more of the warm air fine)
-                    ("thermal", 68.0, 4, 0.25))
+FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0, 0),    # (criterion, level-0 spacing m, max_level, threshold scale,
+                    ("thermal", 68.0, 3, 0.25, 0),   # adapt_every): one level deeper (finest 27 m from 68 m),
+                    ("thermal", 54.0, 3, 0.25, 0),   # split/merge thresholds at a quarter (eq. 20: more of the
+                    ("thermal", 68.0, 4, 0.25, 0),   # warm air fine), and splitting and merging every 4 steps
+                    ("thermal", 68.0, 4, 0.25, 4),   # instead of the scenes' 2 (half the adaptive phases' cost)
+                    ("thermal", 68.0, 3, 0.25, 4))
 DEFAULT_MAX_LEVEL = 3
 REFERENCE_SPACING = 27.0
 ANALYSIS_GRID = (32, 32, 32)
@@ -116,6 +120,7 @@ class Config:
     criterion: str     # "" for uniform runs
     max_level: int = 0              # adaptive: the finest level (spacing halves every 3 levels); 0 for uniform
     threshold_scale: float = 1.0    # adaptive: eq. 20's split and merge thresholds (alpha, beta) times this
+    adapt_every: int = 0            # adaptive: split and merge every this many steps; 0: the scene's own
     overrides: tuple = ()           # adaptive: further scene overrides, ((key, value), ...)
 
     @property
@@ -130,24 +135,29 @@ class Config:
         if self.threshold_scale != 1.0:
             over |= {"adaptive.split_threshold": base.adaptive.split_threshold * self.threshold_scale,
                      "adaptive.merge_threshold": base.adaptive.merge_threshold * self.threshold_scale}
+        if self.adapt_every:
+            over["adaptive.every"] = self.adapt_every
         return over | dict(self.overrides)
 
 
-def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float) -> str:
-    """'thermal-68m', 'thermal-68m-L4' (finest level 4), 'thermal-54m-t0.25' (thresholds times 0.25)."""
+def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float, adapt_every: int = 0) -> str:
+    """'thermal-68m', 'thermal-68m-L4' (finest level 4), 'thermal-54m-t0.25' (thresholds times 0.25),
+    'thermal-68m-L4-t0.25-e4' (split and merge every 4 steps)."""
     name = f"{criterion}-{spacing:g}m"
     if max_level != DEFAULT_MAX_LEVEL:
         name += f"-L{max_level}"
     if threshold_scale != 1.0:
         name += f"-t{threshold_scale:g}"
+    if adapt_every:
+        name += f"-e{adapt_every}"
     return name
 
 
 def configs(scale_name: str) -> list[Config]:
     f = SPACING_FACTOR.get(scale_name, 1.0)
     out = [Config(f"uniform-{s:g}m", "uniform", s * f, "") for s in UNIFORM_SPACINGS]
-    variants = [(c, s, DEFAULT_MAX_LEVEL, 1.0) for c in CRITERIA for s in ADAPTIVE_SPACINGS] + list(FURTHER_VARIANTS)
-    out += [Config(variant_name(c, s, level, t), "adaptive", s * f, c, level, t) for c, s, level, t in variants]
+    variants = [(c, s, DEFAULT_MAX_LEVEL, 1.0, 0) for c in CRITERIA for s in ADAPTIVE_SPACINGS] + list(FURTHER_VARIANTS)
+    out += [Config(variant_name(c, s, level, t, e), "adaptive", s * f, c, level, t, e) for c, s, level, t, e in variants]
     out.append(Config(f"reference-{REFERENCE_SPACING:g}m", "reference", REFERENCE_SPACING * f, ""))
     return out
 
@@ -302,7 +312,8 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
         with np.errstate(all="ignore"):
             row = {"config": config.name, "kind": config.kind, "criterion": config.criterion,
                    "spacing_m": config.spacing_m, "max_level": config.max_level,
-                   "threshold_scale": config.threshold_scale, "seeds": len(idx), "stable_seeds": int(sum(stable)),
+                   "threshold_scale": config.threshold_scale, "adapt_every": config.adapt_every,
+                   "seeds": len(idx), "stable_seeds": int(sum(stable)),
                    "particles": float(np.nanmean(parts)), "ms_per_step": float(np.nanmean(ms)),
                    "ms_per_step_spread": float(np.nanstd(ms)), "pbf_ms": float(np.nanmean(pbf)),
                    **err, "error_seed_spread": (float(np.nanstd(per_seed)) if np.isfinite(per_seed).sum() >= 2
@@ -313,7 +324,8 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
             res = results[i]
             run_rows.append({"config": config.name, "kind": config.kind, "criterion": config.criterion,
                              "spacing_m": config.spacing_m, "max_level": config.max_level,
-                             "threshold_scale": config.threshold_scale, "seed": entries[i][1], "stable": bool(res.stable),
+                             "threshold_scale": config.threshold_scale, "adapt_every": config.adapt_every,
+                             "seed": entries[i][1], "stable": bool(res.stable),
                              "reason": res.reason, "particles": _mean_particles(res),
                              "max_particles": res.max_particles,
                              "ms_per_step": _ms_per_step(res, entries[i][2].total_steps), "pbf_ms": _pbf_ms(res),
@@ -384,6 +396,7 @@ def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_
                  # CSVs written before these columns existed: every variant then had max_level 3, thresholds x1
                  "max_level": int(getattr(row, "max_level", DEFAULT_MAX_LEVEL if row.kind == "adaptive" else 0)),
                  "threshold_scale": float(getattr(row, "threshold_scale", 1.0)),
+                 "adapt_every": int(getattr(row, "adapt_every", 0) or 0),   # 0: the scene's own (older CSVs)
                  "stable_seeds": int(row.stable_seeds), "seeds": int(row.seeds),
                  "error": _none_if_nan(row.error), "ms_per_step": _none_if_nan(row.ms_per_step)}
         if row.kind == "adaptive":
