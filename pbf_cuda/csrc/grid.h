@@ -158,11 +158,10 @@ PBF_INLINE uint32_t nested_key(const GridGeometry& g, Vec3 p) { return cell_key(
 
 // Calls f(j, r, r2) for particles j of `set` (with nested ranges) near particle i, r = x_i - x_j (minimum image),
 // a superset of the pairs with |r| < max(h_i, h_j). Two modes, chosen per pair of cells:
-//   sub-cell mode, when both cells are fine (largest radius <= the sub-cell side; for the lists' candidates, when
-//     i's own sub-cell is): a sub-cell S_j is visited when it lies closer to i's sub-cell S_i than
-//     R = max(largest radius in S_i, in S_j), and f is called for r2 < R^2. A fine particle amid fine ones scans
-//     the 3 x 3 x 3 sub-cells its support needs, as a uniform run at its spacing does, not the level-0 volume,
-//     8 times larger.
+//   sub-cell mode, when both cells are fine (largest radius <= the sub-cell side): a sub-cell S_j is visited
+//     when it lies closer to i's sub-cell S_i than R = max(largest radius in S_i, in S_j), and f is called for
+//     r2 < R^2. A fine particle amid fine ones scans the 3 x 3 x 3 sub-cells its support needs, as a uniform
+//     run at its spacing does, not the level-0 volume, 8 times larger.
 //   cell mode, otherwise: the cell's whole range, f called for r2 < R^2 with R = max(largest radius in i's cell,
 //     in j's cell): one contiguous loop, as the uniform search does.
 // Every test reads the sub-cells and cells as sorted (i's own from its sort key), never positions that moved since,
@@ -180,13 +179,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
     const float sub_side = 0.5f * fminf(g.cell[0], fminf(g.cell[1], g.cell[2]));
     const float hs_i = set.sub_radius[key];
     const float hc_i = set.cell_radius[cell_i];
-    // The sums (skin 0) use sub-cell mode between two fine cells only, so that a pair is tested the same way from
-    // both ends however far the particles moved since the sort. The lists' candidates (skin > 0) are searched
-    // right after the sort and kept only within their own support plus the skin (neighbor_list.h), so there a
-    // particle whose own sub-cell is fine uses sub-cell mode whatever its cell and the other cell hold: it skips
-    // the sub-cells that cannot hold a candidate, and the lists come out the same, in the same order.
-    const bool fine_i = (skin > 0.0f ? hs_i : hc_i) <= sub_side;
-    const bool fine_any_cell = skin > 0.0f;
+    const bool fine_i = hc_i <= sub_side;
     // Squared gap (m^2) along axis a between i's sub-cell and sub-cell s (0, 1) of the cell at offset d:
     // |o| - 1 whole sub-cells lie between them, o = 2 d + s - s_i.
     auto gap2 = [&](int a, int d, int s) {
@@ -211,7 +204,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
                 uint32_t b = set.start[cell], en = set.end[cell];
                 if (b == en) continue;
                 float hc = set.cell_radius[cell];
-                if (!(fine_i && (fine_any_cell || hc <= sub_side))) {   // cell mode
+                if (!(fine_i && hc <= sub_side)) {   // cell mode
                     float rc = fmaxf(hc_i, hc) + skin;
                     float rc2 = rc * rc;
                     for (uint32_t j = b; j < en; ++j) {
@@ -242,24 +235,11 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
     }
 }
 
-// How far (in cell sides; at least the lists' skin, 0.1 h0) a particle may have moved out of the sub-cell it was
-// sorted into and still be found by the sub-cell pruning below: the density corrections after the sort move
-// particles a few hundredths of h0 (neighbor_list.h).
-constexpr float kSubCellDrift = 0.1f;
-
-// Calls f(j, r, r2) for the particles j of `set` in the 3 x 3 x 3 block of cells around cell c with |r| < r_max
-// (r = q - x_j, minimum image), lanes first, first + stride, ... of each range (a team's share). Cells (and, in
-// sets with nested sub-cells, sub-cells) farther from q than r_max + slack are skipped: slack (m) is how far a
-// particle may sit outside the box it was sorted into (merged particles, adaptivity.h). Sub-cells are pruned with
-// kSubCellDrift more: the splitting and merging searches in fine regions then read the sub-cells near q, not the
-// 8x larger cells.
 template <class F>
 PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
                                              float r_max, float slack, uint32_t first, uint32_t stride, F&& f) {
     const float r2max = r_max * r_max;
     const float r2prune = (r_max + slack) * (r_max + slack);
-    const float r_sub = r_max + slack + kSubCellDrift * fminf(g.cell[0], fminf(g.cell[1], g.cell[2]));
-    const float r2sub = r_sub * r_sub;
     // q relative to the lower corner of cell c, in cells (minimum image on periodic axes).
     float rel[3];
     for (int a = 0; a < 3; ++a) {
@@ -272,20 +252,6 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
         float lo = float(d) - rel[a], hi = rel[a] - float(d + 1);
         float e = fmaxf(0.0f, fmaxf(lo, hi)) * g.cell[a];
         return e * e;
-    };
-    // The same for sub-cell s (0: lower half, 1: upper half) of the slab at offset d.
-    auto sub_gap2 = [&](int a, int d, uint32_t s) {
-        float lo = float(d) + 0.5f * float(s) - rel[a], hi = rel[a] - (float(d) + 0.5f * float(s + 1u));
-        float e = fmaxf(0.0f, fmaxf(lo, hi)) * g.cell[a];
-        return e * e;
-    };
-    auto visit = [&](uint32_t b, uint32_t e) {
-        for (uint32_t j = b + first; j < e; j += stride) {
-            Float4 pj = set.pos[j];
-            Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-            float r2 = dot(r, r);
-            if (r2 < r2max) f(j, r, r2);
-        }
     };
     for (int dz = -1; dz <= 1; ++dz) {
         int cz = c[2] + dz;
@@ -305,16 +271,12 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
                 else if (cx < 0 || cx >= g.dims[0]) continue;
                 if (ey + gap2(0, dx) >= r2prune) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
-                if (!set.sub_start) {
-                    visit(set.start[cell], set.end[cell]);
-                    continue;
-                }
-                if (set.start[cell] == set.end[cell]) continue;
-                for (uint32_t s = 0; s < kSubCells; ++s) {   // the cell's range is its sub-cells' ranges in order
-                    if (sub_gap2(0, dx, s & 1u) + sub_gap2(1, dy, (s >> 1) & 1u) + sub_gap2(2, dz, s >> 2) >= r2sub)
-                        continue;
-                    uint32_t sc = cell * kSubCells + s;
-                    visit(set.sub_start[sc], set.sub_end[sc]);
+                uint32_t b = set.start[cell], e = set.end[cell];
+                for (uint32_t j = b + first; j < e; j += stride) {
+                    Float4 pj = set.pos[j];
+                    Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+                    float r2 = dot(r, r);
+                    if (r2 < r2max) f(j, r, r2);
                 }
             }
         }
