@@ -31,13 +31,13 @@ PBF_INLINE Vec3 spiky_gradient(Vec3 r, float r2, float h) {
 // read from its mass, m = m0 2^(-l), which is an exact power-of-two multiple of m0.
 struct LevelRadii {
     float h[kMaxLevels];
-    int m0_exponent;  // binary exponent of the level-0 mass m0 (frexpf), fixed per run
+    int m0_exponent;  // biased binary exponent of the level-0 mass m0 (bits 23-30 of the float), fixed per run
     // m = m0 2^-l exactly, so l is the difference of the binary exponents; no division, which
-    // --use_fast_math would make approximate (m0 / m0 = 0.99999994 reads as level 1).
+    // --use_fast_math would make approximate (m0 / m0 = 0.99999994 reads as level 1). The exponents are read
+    // from the bits (masses are normal floats): every neighbour pair of an adaptive pass asks for its level, and
+    // frexpf is a library call on the CPU and a dozen instructions on the GPU.
     PBF_HD int level_of_mass(float m) const {
-        int e;
-        frexpf(m, &e);
-        int l = m0_exponent - e;
+        int l = m0_exponent - int((float_bits(m) >> 23) & 0xffu);
         return l < 0 ? 0 : (l >= kMaxLevels ? kMaxLevels - 1 : l);
     }
     PBF_HD float radius_of_mass(float m) const { return h[level_of_mass(m)]; }
@@ -49,7 +49,7 @@ struct LevelRadii {
 inline LevelRadii make_level_radii(float h0, float m0) {
     LevelRadii lr{};
     for (int l = 0; l < kMaxLevels; ++l) lr.h[l] = h0 * std::pow(2.0f, -l / 3.0f);
-    frexpf(m0, &lr.m0_exponent);
+    lr.m0_exponent = int((float_bits(m0) >> 23) & 0xffu);
     return lr;
 }
 
