@@ -43,6 +43,7 @@ SMOOTHABLE_FIELDS = ("temperature", "vapor", "cloud")
 VAPOR_PROFILES = ("relative", "uniform")
 PROJECTIONS = ("position", "velocity")
 REFINEMENT_CRITERIA = ("paper", "lookahead", "thermal", "heated")
+PAIR_KERNELS = ("mean_of_kernels", "mean_radius")
 
 
 class SceneError(ValueError):
@@ -233,6 +234,11 @@ class Adaptive:
                                "'heated': the thermal criterion and max(w*, S_e(x, z) tau / Q), the heat the ground "
                                "below gives in tau = heating_time, so the columns above heated ground are fine "
                                "before thermals rise in them")
+    pair_kernel: str = _spec("mean_of_kernels", choices=PAIR_KERNELS,
+                             doc="the kernel between particles of radii h_i != h_j: 'mean_of_kernels': eq. 19, "
+                                 "(W(r, h_i) + W(r, h_j)) / 2, support max(h_i, h_j) (the paper's); 'mean_radius': "
+                                 "W(r, (h_i + h_j) / 2), support (h_i + h_j) / 2, so a coarse particle next to fine "
+                                 "ones has fewer neighbours (both symmetric in i and j)")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
     heating_time: float = _spec(60.0, 0.0, 1e6, "s", "tau of the 'heated' criterion: with the defaults a column "
                                                      "is fine where S_e tau > 0.45 K")

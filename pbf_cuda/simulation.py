@@ -89,6 +89,7 @@ DERIVED = {
                        "particles.spacing", "particles.kernel_ratio", "particles.rest_density"),
     "smooth_fields": ("smoothing.fields",),
     "max_level": ("adaptive.enabled", "adaptive.max_level"),
+    "pair_kernel_mean_radius": ("adaptive.pair_kernel",),
     "lookahead_height": ("adaptive.criterion", "adaptive.lookahead_height"),
     "refine_warm_air": ("adaptive.criterion",),
     "heating_time": ("adaptive.criterion", "adaptive.heating_time"),
@@ -143,6 +144,7 @@ def derived_params(scene: Scene, capacity: int, core=None) -> dict:
         out["smooth_fields"] = [f in sm.fields for f in ("temperature", "vapor", "cloud")]
     ad = scene.adaptive
     out["max_level"] = ad.max_level if ad.enabled else 0
+    out["pair_kernel_mean_radius"] = ad.pair_kernel == "mean_radius"
     out["lookahead_height"] = ad.lookahead_height if ad.criterion == "lookahead" else 0.0
     out["refine_warm_air"] = ad.criterion in ("thermal", "heated")
     out["heating_time"] = ad.heating_time if ad.criterion == "heated" else 0.0

@@ -6,7 +6,7 @@ from hypothesis import strategies as hst
 from scipy.spatial import cKDTree
 
 from pbf_cuda import Simulation, load_scene
-from pbf_cuda.scene import SceneError
+from pbf_cuda.scene import PAIR_KERNELS, SceneError
 from solver_helpers import BACKENDS, by_id
 
 
@@ -203,11 +203,13 @@ def mixed_level_state(scene, backend, seed=3):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_nested_neighbour_search_finds_every_pair_of_mixed_levels(backend):
+@pytest.mark.parametrize("pair_kernel", PAIR_KERNELS)
+def test_nested_neighbour_search_finds_every_pair_of_mixed_levels(backend, pair_kernel):
     """The adaptive neighbour search (nested sub-cells, per-particle support) gives every particle the density
-    of eq. 1 with the symmetric kernel of eq. 19 over all pairs within max(h_i, h_j), as a brute-force sum."""
+    of eq. 1 with the pair kernel over all pairs within its support, as a brute-force sum: eq. 19's mean of the
+    kernels at both radii (support max(h_i, h_j)), or the kernel at the mean radius (support (h_i + h_j) / 2)."""
     scene = adaptive_scene(**{"pbf.iterations": 1, "atmosphere.buoyancy": 0.0, "adaptive.split_threshold": 1e9,
-                              "adaptive.merge_threshold": 0.0})
+                              "adaptive.merge_threshold": 0.0, "adaptive.pair_kernel": pair_kernel})
     st = mixed_level_state(scene, backend)
     st["velocity"][:] = 0.0
     sim = Simulation.from_arrays(scene, st, backend=backend)
@@ -237,19 +239,25 @@ def test_nested_neighbour_search_finds_every_pair_of_mixed_levels(backend):
         hits = np.asarray(tree.query_ball_point(x[i], h0))
         nb = hits % len(x)
         r2 = np.sum((images[hits] - x[i]) ** 2, axis=1)
-        w = np.where(hr[nb] == hr[i], poly6(r2, hr[i]), 0.5 * (poly6(r2, hr[i]) + poly6(r2, hr[nb])))
+        if pair_kernel == "mean_radius":
+            w = poly6(r2, 0.5 * (hr[i] + hr[nb]))
+        else:
+            w = np.where(hr[nb] == hr[i], poly6(r2, hr[i]), 0.5 * (poly6(r2, hr[i]) + poly6(r2, hr[nb])))
         expected = np.sum(m[nb] * w)
         worst = max(worst, abs(rho_by_id[st["id"][i]] / expected - 1.0))
     assert worst < 2e-5
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_neighbour_lists_hold_the_pairs_within_their_own_support(backend):
+@pytest.mark.parametrize("pair_kernel", PAIR_KERNELS)
+def test_neighbour_lists_hold_the_pairs_within_their_own_support(backend, pair_kernel):
     """A mixed-level box at rest (the step's predicted positions are the state's): the step's lists hold, over all
-    particles, exactly the pairs (i itself included) with |x_ij| < max(h_i, h_j) + skin (skin 0.1 h0), not every
-    particle of a cell within the cell's largest radius."""
+    particles, exactly the pairs (i itself included) with |x_ij| < support + skin (skin 0.1 h0; support max(h_i,
+    h_j) with eq. 19, (h_i + h_j) / 2 with the kernel at the mean radius), not every particle of a cell within the
+    cell's largest radius."""
     scene = adaptive_scene(**{"atmosphere.buoyancy": 0.0, "atmosphere.heating_rate": 0.0,
-                              "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0})
+                              "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0,
+                              "adaptive.pair_kernel": pair_kernel})
     st = mixed_level_state(scene, backend)
     st["velocity"][:] = 0.0
     sim = Simulation.from_arrays(scene, st, backend=backend)
@@ -264,19 +272,23 @@ def test_neighbour_lists_hold_the_pairs_within_their_own_support(backend):
         hits = np.asarray(tree.query_ball_point(pos[i], h0 + skin))
         r = np.linalg.norm(((pos[hits] - pos[i] + 0.5 * np.array(tree.boxsize)) % tree.boxsize)
                            - 0.5 * np.array(tree.boxsize), axis=1)
-        expected += int(np.sum(r < np.maximum(hr[i], hr[hits]) + skin))
+        support = 0.5 * (hr[i] + hr[hits]) if pair_kernel == "mean_radius" else np.maximum(hr[i], hr[hits])
+        expected += int(np.sum(r < support + skin))
     all_within_h0 = sum(len(tree.query_ball_point(pos[i], h0 + skin)) for i in range(len(x)))
     assert abs(listed - expected) <= 1e-4 * expected, (listed, expected)
     assert listed < 0.9 * all_within_h0          # half the particles are level 0 here (support h0 for all their pairs)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_mixed_level_box_conserves_horizontal_momentum(backend):
+@pytest.mark.parametrize("pair_kernel", PAIR_KERNELS)
+def test_mixed_level_box_conserves_horizontal_momentum(backend, pair_kernel):
     """Pair forces of mixed levels are equal and opposite only if i finds j whenever j finds i: the periodic
-    (x, z) momentum of a box of levels 0-3 with random velocities stays constant over 20 steps."""
+    (x, z) momentum of a box of levels 0-3 with random velocities stays constant over 20 steps, with either
+    pair kernel."""
     scene = adaptive_scene(**{"atmosphere.buoyancy": 0.0, "adaptive.split_threshold": 1e9,
                               "adaptive.merge_threshold": 0.0, "pbf.xsph": 0.0, "pbf.vorticity": 0.0,
-                              "pbf.viscosity": 1.0, "domain.boundary": ["periodic"] * 3})
+                              "pbf.viscosity": 1.0, "domain.boundary": ["periodic"] * 3,
+                              "adaptive.pair_kernel": pair_kernel})
     sim = Simulation.from_arrays(scene, mixed_level_state(scene, backend), backend=backend)
 
     def momentum(s):

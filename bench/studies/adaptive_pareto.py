@@ -7,8 +7,8 @@ For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide dom
   on the water a particle would hold after rising ``lookahead_height``, ``thermal`` = eq. 20 on the heat
   excess over the environment as cloud water) at two level-0 spacings (68 and 54 m) with max level 3, and
   the :data:`FURTHER_VARIANTS` of ``thermal``: one level deeper from 68 m (``thermal-68m-L4``, finest 27 m),
-  eq. 20's split/merge thresholds times 0.25 (``-t0.25``), and splitting and merging every 4 steps instead of
-  the adaptive scenes' 2 (``-e4``),
+  eq. 20's split/merge thresholds times 0.25 (``-t0.25``), splitting and merging every 4 steps instead of
+  the adaptive scenes' 2 (``-e4``), and the kernel at the pair's mean radius instead of eq. 19 (``-km``),
 * a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
 
 each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
@@ -43,7 +43,7 @@ each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configura
 
     {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
      "min_stable_seeds": n,                             # the rule the verdict applied
-     "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "adapt_every",
+     "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "adapt_every", "pair_kernel",
                    "speedup_at_equal_error",
                    "error", "ms_per_step",
                    "particles", "cost_ratio_per_particle", "stable_seeds", "seeds"}],   # the qualifying ones
@@ -88,12 +88,14 @@ SCENES = ("growing", "cumulus")
 CRITERIA = ("paper", "lookahead", "thermal", "heated")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it
-FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0, 0),    # (criterion, level-0 spacing m, max_level, threshold scale,
-                    ("thermal", 68.0, 3, 0.25, 0),   # adapt_every): one level deeper (finest 27 m from 68 m),
-                    ("thermal", 54.0, 3, 0.25, 0),   # split/merge thresholds at a quarter (eq. 20: more of the
-                    ("thermal", 68.0, 4, 0.25, 0),   # warm air fine), and splitting and merging every 4 steps
-                    ("thermal", 68.0, 4, 0.25, 4),   # instead of the scenes' 2 (half the adaptive phases' cost)
-                    ("thermal", 68.0, 3, 0.25, 4))
+FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0, 0, ""),    # (criterion, level-0 spacing m, max_level, threshold
+                    ("thermal", 68.0, 3, 0.25, 0, ""),   # scale, adapt_every, pair kernel): one level deeper (finest
+                    ("thermal", 54.0, 3, 0.25, 0, ""),   # 27 m from 68 m), split/merge thresholds at a quarter (eq. 20:
+                    ("thermal", 68.0, 4, 0.25, 0, ""),   # more of the warm air fine), splitting and merging every 4
+                    ("thermal", 68.0, 4, 0.25, 4, ""),   # steps instead of the scenes' 2 (half the adaptive phases'
+                    ("thermal", 68.0, 3, 0.25, 4, ""),   # cost), and the kernel at the pair's mean radius instead
+                    ("thermal", 68.0, 4, 0.25, 4, "mean_radius"),   # of eq. 19's mean of kernels (-km)
+                    ("thermal", 68.0, 4, 0.25, 0, "mean_radius"))
 DEFAULT_MAX_LEVEL = 3
 REFERENCE_SPACING = 27.0
 ANALYSIS_GRID = (32, 32, 32)
@@ -121,6 +123,7 @@ class Config:
     max_level: int = 0              # adaptive: the finest level (spacing halves every 3 levels); 0 for uniform
     threshold_scale: float = 1.0    # adaptive: eq. 20's split and merge thresholds (alpha, beta) times this
     adapt_every: int = 0            # adaptive: split and merge every this many steps; 0: the scene's own
+    pair_kernel: str = ""           # adaptive: adaptive.pair_kernel; "": the scene's own (eq. 19)
     overrides: tuple = ()           # adaptive: further scene overrides, ((key, value), ...)
 
     @property
@@ -137,12 +140,15 @@ class Config:
                      "adaptive.merge_threshold": base.adaptive.merge_threshold * self.threshold_scale}
         if self.adapt_every:
             over["adaptive.every"] = self.adapt_every
+        if self.pair_kernel:
+            over["adaptive.pair_kernel"] = self.pair_kernel
         return over | dict(self.overrides)
 
 
-def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float, adapt_every: int = 0) -> str:
+def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale: float, adapt_every: int = 0,
+                 pair_kernel: str = "") -> str:
     """'thermal-68m', 'thermal-68m-L4' (finest level 4), 'thermal-54m-t0.25' (thresholds times 0.25),
-    'thermal-68m-L4-t0.25-e4' (split and merge every 4 steps)."""
+    'thermal-68m-L4-t0.25-e4' (split and merge every 4 steps), '...-km' (the kernel at the pair's mean radius)."""
     name = f"{criterion}-{spacing:g}m"
     if max_level != DEFAULT_MAX_LEVEL:
         name += f"-L{max_level}"
@@ -150,14 +156,17 @@ def variant_name(criterion: str, spacing: float, max_level: int, threshold_scale
         name += f"-t{threshold_scale:g}"
     if adapt_every:
         name += f"-e{adapt_every}"
+    if pair_kernel == "mean_radius":
+        name += "-km"
     return name
 
 
 def configs(scale_name: str) -> list[Config]:
     f = SPACING_FACTOR.get(scale_name, 1.0)
     out = [Config(f"uniform-{s:g}m", "uniform", s * f, "") for s in UNIFORM_SPACINGS]
-    variants = [(c, s, DEFAULT_MAX_LEVEL, 1.0, 0) for c in CRITERIA for s in ADAPTIVE_SPACINGS] + list(FURTHER_VARIANTS)
-    out += [Config(variant_name(c, s, level, t, e), "adaptive", s * f, c, level, t, e) for c, s, level, t, e in variants]
+    variants = [(c, s, DEFAULT_MAX_LEVEL, 1.0, 0, "") for c in CRITERIA for s in ADAPTIVE_SPACINGS] + list(FURTHER_VARIANTS)
+    out += [Config(variant_name(c, s, level, t, e, k), "adaptive", s * f, c, level, t, e, k)
+            for c, s, level, t, e, k in variants]
     out.append(Config(f"reference-{REFERENCE_SPACING:g}m", "reference", REFERENCE_SPACING * f, ""))
     return out
 
@@ -313,7 +322,7 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
             row = {"config": config.name, "kind": config.kind, "criterion": config.criterion,
                    "spacing_m": config.spacing_m, "max_level": config.max_level,
                    "threshold_scale": config.threshold_scale, "adapt_every": config.adapt_every,
-                   "seeds": len(idx), "stable_seeds": int(sum(stable)),
+                   "pair_kernel": config.pair_kernel, "seeds": len(idx), "stable_seeds": int(sum(stable)),
                    "particles": float(np.nanmean(parts)), "ms_per_step": float(np.nanmean(ms)),
                    "ms_per_step_spread": float(np.nanstd(ms)), "pbf_ms": float(np.nanmean(pbf)),
                    **err, "error_seed_spread": (float(np.nanstd(per_seed)) if np.isfinite(per_seed).sum() >= 2
@@ -325,7 +334,7 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
             run_rows.append({"config": config.name, "kind": config.kind, "criterion": config.criterion,
                              "spacing_m": config.spacing_m, "max_level": config.max_level,
                              "threshold_scale": config.threshold_scale, "adapt_every": config.adapt_every,
-                             "seed": entries[i][1], "stable": bool(res.stable),
+                             "pair_kernel": config.pair_kernel, "seed": entries[i][1], "stable": bool(res.stable),
                              "reason": res.reason, "particles": _mean_particles(res),
                              "max_particles": res.max_particles,
                              "ms_per_step": _ms_per_step(res, entries[i][2].total_steps), "pbf_ms": _pbf_ms(res),
@@ -391,12 +400,14 @@ def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_
     front = uniform_front(uniform) if len(uniform) else uniform
     variants, excluded, speedups = [], [], {}
     for row in per_config[per_config.kind != "reference"].itertuples():
+        pair_kernel = getattr(row, "pair_kernel", "")    # "" (read back as NaN): the scene's own, eq. 19
         entry = {"name": row.config, "criterion": row.criterion if isinstance(row.criterion, str) else "",
                  "spacing_m": float(row.spacing_m),
                  # CSVs written before these columns existed: every variant then had max_level 3, thresholds x1
                  "max_level": int(getattr(row, "max_level", DEFAULT_MAX_LEVEL if row.kind == "adaptive" else 0)),
                  "threshold_scale": float(getattr(row, "threshold_scale", 1.0)),
                  "adapt_every": int(getattr(row, "adapt_every", 0) or 0),   # 0: the scene's own (older CSVs)
+                 "pair_kernel": pair_kernel if isinstance(pair_kernel, str) else "",
                  "stable_seeds": int(row.stable_seeds), "seeds": int(row.seeds),
                  "error": _none_if_nan(row.error), "ms_per_step": _none_if_nan(row.ms_per_step)}
         if row.kind == "adaptive":

@@ -75,7 +75,7 @@ def best_variant(ctx: StudyContext) -> tuple[str, dict] | None:
     base = load_scene("growing_adaptive")
     variant = Config(best["name"], "adaptive", float(spacing or base.particles.spacing), criterion,
                      int(best.get("max_level") or DEFAULT_MAX_LEVEL), float(best.get("threshold_scale") or 1.0),
-                     int(best.get("adapt_every") or 0))
+                     int(best.get("adapt_every") or 0), str(best.get("pair_kernel") or ""))
     over = variant.adaptive_overrides(base)
     if ctx.scale.particles is None and spacing:          # the study's spacings are those of the GPU scale
         over["particles.spacing"] = float(spacing)

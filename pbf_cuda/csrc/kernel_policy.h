@@ -2,12 +2,17 @@
 // Every neighbour kernel that works at mixed levels (pbf_constraints.h, smoothing.h) is a template over a
 // policy, and the solver picks the policy once per step (solver_impl.inl), so no kernel branches on it:
 //   radius(radii, h0, m)          kernel radius of a particle of mass m: h0, or h_l = h0 2^(-l/3), m = m0 2^(-l)
-//   W(r2, hi, hj), grad_W(...)    the pair's kernel: the plain kernel at h0, or the symmetric kernel of eq. 19
+//   W(r2, hi, hj), grad_W(...)    the pair's kernel: the plain kernel at h0, the symmetric kernel of eq. 19
+//                                 (the mean of the kernels at both radii), or the kernel at the mean radius
+//   support(hi, hj)               the pair's support: h0, max(h_i, h_j) (eq. 19), or (h_i + h_j) / 2
 //   area_scaled(x, h, h0)         x (h / h0)^2: a per-level quantity that scales with h^2 (smoothing's beta)
 //   tensile_ratio, tensile_scale  the s_corr term at the pair's own radii (PositionCorrection)
 //   for_each_neighbor             the 27-cell search at h0, or the nested sub-cell search of grid.h
 //   for_each_candidate            the same search with every radius widened by a skin (neighbor_list.h)
 //   within_support                whether a candidate pair lies within its own support plus the skin
+// Adaptive runs pick the pair kernel with adaptive.pair_kernel: eq. 19 (AdaptivePolicy, the paper's) or the
+// kernel at the pair's mean radius (MeanRadiusPolicy), whose support (h_i + h_j)/2 gives a level-0 particle next
+// to fine ones fewer neighbours (level 0 beside level 3: 0.75 h0, 0.42 of eq. 19's volume).
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -15,16 +20,16 @@
 
 namespace pbf {
 
-// |r| < max(h_i, h_j) + extra: the support of the symmetric kernel of eq. 19 (extra 0), or that support widened by
-// the neighbour lists' skin.
-PBF_HD inline bool within_pair_support(float r2, float hi, float hj, float extra) {
-    float s = fmaxf(hi, hj) + extra;
+// |r| < support + extra: within the pair's support (extra 0), or within that support widened by the lists' skin.
+PBF_HD inline bool within_radius(float r2, float support, float extra) {
+    float s = support + extra;
     return r2 < s * s;
 }
 
 // Every particle is level 0: radius h0, plain kernels, the uniform grid search.
 struct UniformPolicy {
     static PBF_HD float radius(const LevelRadii&, float h0, float) { return h0; }
+    static PBF_HD float support(float hi, float) { return hi; }
     static PBF_HD float W(float r2, float hi, float) { return poly6(r2, hi); }
     static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float) { return spiky_gradient(r, r2, hi); }
     static PBF_HD float area_scaled(float x, float, float) { return x; }
@@ -47,6 +52,7 @@ struct UniformPolicy {
 // Particles of several levels: radius from the mass, symmetric kernels (eq. 19), the nested search.
 struct AdaptivePolicy {
     static PBF_HD float radius(const LevelRadii& radii, float, float m) { return radii.radius_of_mass(m); }
+    static PBF_HD float support(float hi, float hj) { return fmaxf(hi, hj); }
     static PBF_HD float W(float r2, float hi, float hj) { return poly6_sym(r2, hi, hj); }
     static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient_sym(r, r2, hi, hj); }
     static PBF_HD float area_scaled(float x, float h, float h0) { return x * (h * h) / (h0 * h0); }
@@ -75,14 +81,37 @@ struct AdaptivePolicy {
     }
     // The pair's own support (eq. 19), widened by the lists' skin.
     static PBF_HD bool within_support(float r2, float hi, float hj, float skin) {
-        return within_pair_support(r2, hi, hj, skin);
+        return within_radius(r2, support(hi, hj), skin);
+    }
+};
+
+// Particles of several levels with the kernel at the pair's mean radius h_ij = (h_i + h_j) / 2, symmetric in i
+// and j as eq. 19's mean of kernels is (so pair forces stay equal and opposite), the plain kernel between equal
+// levels (bitwise as AdaptivePolicy there), with support h_ij instead of max(h_i, h_j). Everything that is not
+// the pair's kernel is AdaptivePolicy's.
+struct MeanRadiusPolicy : AdaptivePolicy {
+    static PBF_HD float support(float hi, float hj) { return 0.5f * (hi + hj); }
+    static PBF_HD float W(float r2, float hi, float hj) { return poly6(r2, hi == hj ? hi : support(hi, hj)); }
+    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) {
+        return spiky_gradient(r, r2, hi == hj ? hi : support(hi, hj));
+    }
+    // W(r) / W(dq h_ij) at the pair's mean radius: a fine pair at its own spacing feels what a level-0 pair does.
+    static PBF_HD float tensile_ratio(float r2, float hi, float hj, float dq, float) {
+        float h = hi == hj ? hi : support(hi, hj);
+        float hm = dq * h;
+        float wdq = poly6(hm * hm, h);
+        return wdq > 0.0f ? poly6(r2, h) / wdq : 0.0f;
+    }
+    static PBF_HD bool within_support(float r2, float hi, float hj, float skin) {
+        return within_radius(r2, support(hi, hj), skin);
     }
 };
 
 // f(j, r, r2, m_j, h_j) for the fluid neighbours j of particle i at q (i itself included, r2 = 0): the policy's
 // search, with each neighbour's mass and kernel radius. With this step's neighbour lists (neighbor_list.h) the
 // candidates come from i's list, in the order the search found them, and f is called where |r| is below the
-// pair's support max(h_i, h_j) (h0 in uniform runs: the search's own test); the search's wider cell-level tests
+// pair's support (max(h_i, h_j) with eq. 19, (h_i + h_j) / 2 at the mean radius, h0 in uniform runs: the search's
+// own test); the search's wider cell-level tests
 // in adaptive runs only added pairs whose kernels are exactly zero.
 // The list is read kListBatch candidates at a time: their indices, then their positions, then the pairs in list
 // order, so that a thread has several independent gathers in flight instead of one index-then-position chain
@@ -101,7 +130,7 @@ PBF_HD inline bool supported_pair(const GridGeometry& g, const LevelRadii& radii
     r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
     r2 = dot(r, r);
     hj = Policy::radius(radii, h0, pj.w);
-    return within_pair_support(r2, hi, hj, 0.0f);
+    return within_radius(r2, Policy::support(hi, hj), 0.0f);
 }
 
 template <class Policy, class F>

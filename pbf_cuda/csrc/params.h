@@ -93,6 +93,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     /* Adaptivity (section 5.2) */                                                                                 \
     S(bool, adaptive, "adaptive.enabled", false)                                                                   \
     S(int, max_level, "", 0)                                                                                       \
+    S(bool, pair_kernel_mean_radius, "", false)  /* the pair kernel at (h_i + h_j)/2 instead of eq. 19 */        \
     S(float, k_p, "adaptive.k_p", 1.0f)                    /* eq. 20 */                                            \
     S(float, k_c, "adaptive.k_c", 2000.0f)                 /* eq. 20, 1/(kg/kg) */                                 \
     S(float, split_threshold, "adaptive.split_threshold", 0.3f)   /* alpha */                                      \

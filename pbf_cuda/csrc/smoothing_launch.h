@@ -35,7 +35,7 @@ void smooth_fields(SolverData& d) {
     // The limiter's pass where the weights can pass its cap S_cap (smoothing.h): mixed levels, or kappa above
     // S_cap (a lattice's S_i is about 0.9 kappa < kappa, so at kappa <= S_cap it would scale no pair and is skipped).
     const float* weight_sum = nullptr;
-    if (std::is_same<Policy, AdaptivePolicy>::value || d.p.kappa > kSmoothingWeightCap) {
+    if (!std::is_same<Policy, UniformPolicy>::value || d.p.kappa > kSmoothingWeightCap) {
         parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, pair, raw(d.float_tmp)});
         weight_sum = raw(d.float_tmp);
     }

@@ -140,7 +140,9 @@ public:
     // budget record and the check.
     std::string step(int n) override {
         for (int s = 0; s < n; ++s) {
-            if (d_.p.adaptive) do_step<AdaptivePolicy>(); else do_step<UniformPolicy>();
+            if (!d_.p.adaptive) do_step<UniformPolicy>();
+            else if (d_.p.pair_kernel_mean_radius) do_step<MeanRadiusPolicy>();
+            else do_step<AdaptivePolicy>();
             const bool checked = d_.step % d_.p.check_every == 0;
             if (checked && d_.n > 0) reduce_checks_into(d_, &raw(d_.step_sums)->checks);
             const StepSums sums = d_.step_sums[0];
