@@ -238,7 +238,8 @@ class Adaptive:
                              doc="the kernel between particles of radii h_i != h_j: 'mean_of_kernels': eq. 19, "
                                  "(W(r, h_i) + W(r, h_j)) / 2, support max(h_i, h_j) (the paper's); 'mean_radius': "
                                  "W(r, (h_i + h_j) / 2), support (h_i + h_j) / 2, so a coarse particle next to fine "
-                                 "ones has fewer neighbours (both symmetric in i and j)")
+                                 "ones has fewer neighbours (both symmetric in i and j; 'mean_radius' is the less "
+                                 "tried: one of five seeds of the growing study blew up with it, README)")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
     heating_time: float = _spec(60.0, 0.0, 1e6, "s", "tau of the 'heated' criterion: with the defaults a column "
                                                      "is fine where S_e tau > 0.45 K")
