@@ -86,22 +86,21 @@ struct AdaptivePolicy {
 };
 
 // Particles of several levels with the kernel at the pair's mean radius h_ij = (h_i + h_j) / 2, symmetric in i
-// and j as eq. 19's mean of kernels is (so pair forces stay equal and opposite), the plain kernel between equal
-// levels (bitwise as AdaptivePolicy there), with support h_ij instead of max(h_i, h_j). Everything that is not
-// the pair's kernel is AdaptivePolicy's.
+// and j as eq. 19's mean of kernels is (so pair forces stay equal and opposite), with support h_ij instead of
+// max(h_i, h_j). Between equal levels h_ij = h_i exactly (a doubling and a halving), so those pairs see the plain
+// kernel, bitwise as under AdaptivePolicy. Everything that is not the pair's kernel is AdaptivePolicy's.
 struct MeanRadiusPolicy : AdaptivePolicy {
     static PBF_HD float support(float hi, float hj) { return 0.5f * (hi + hj); }
-    static PBF_HD float W(float r2, float hi, float hj) { return poly6(r2, hi == hj ? hi : support(hi, hj)); }
-    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) {
-        return spiky_gradient(r, r2, hi == hj ? hi : support(hi, hj));
-    }
+    static PBF_HD float W(float r2, float hi, float hj) { return poly6(r2, support(hi, hj)); }
+    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient(r, r2, support(hi, hj)); }
     // W(r) / W(dq h_ij) at the pair's mean radius: a fine pair at its own spacing feels what a level-0 pair does.
     static PBF_HD float tensile_ratio(float r2, float hi, float hj, float dq, float) {
-        float h = hi == hj ? hi : support(hi, hj);
+        float h = support(hi, hj);
         float hm = dq * h;
         float wdq = poly6(hm * hm, h);
         return wdq > 0.0f ? poly6(r2, h) / wdq : 0.0f;
     }
+    // Declared again, not inherited: AdaptivePolicy's calls AdaptivePolicy::support (static members bind early).
     static PBF_HD bool within_support(float r2, float hi, float hj, float skin) {
         return within_radius(r2, support(hi, hj), skin);
     }
