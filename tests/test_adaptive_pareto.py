@@ -265,3 +265,96 @@ def test_analysis_leaves_out_a_variant_that_blew_up_in_two_seeds():
     assert row["stable_seeds"] == 1 and math.isnan(row["error_seed_spread"])   # one seed: no spread
     assert row["speedup_at_equal_error"] == pytest.approx(8.0, rel=0.02)      # still in the CSV, not in the verdict
     assert "_speedups" not in verdict
+
+
+# ---- resampling the seeds: how sure the speed-up is ----------------------------------------------------------
+def _noisy_study(noise: float, seeds: int, shifts=None):
+    """A study on the front t = 0.4 / e (uniform offsets 0.2 ... 0.025 at 2 ... 16 ms) with one variant at the
+    43 m run's error (offset 0.05) in 4 ms, i.e. 2x; its seeds scatter by `noise` (a fixed draw per seed)."""
+    t = np.linspace(0, 1000, 11)
+    cover = np.linspace(0.1, 0.6, 11)
+    steps = SimpleNamespace(total_steps=100)
+    z = np.random.default_rng(7).standard_normal(seeds) if shifts is None else np.asarray(shifts)
+    z = z - z.mean()
+    entries, results = [], []
+    for spacing, ms, off in [(68, 2.0, 0.2), (54, 4.0, 0.1), (43, 8.0, 0.05), (34, 16.0, 0.025)]:
+        for seed in range(seeds):
+            entries.append((ap.Config(f"uniform-{spacing}m", "uniform", spacing, ""), seed, steps))
+            results.append(fake_result(t, cover, ms, 1e5, seed_shift=off))
+    for seed in range(seeds):
+        entries.append((ap.Config("thermal-68m", "adaptive", 68, "thermal"), seed, steps))
+        results.append(fake_result(t, cover, 4.0, 1e5, seed_shift=0.05 + noise * z[seed]))
+        entries.append((ap.Config("reference-27m", "reference", 27, ""), seed, steps))
+        results.append(fake_result(t, cover, 32.0, 1.6e6))
+    return entries, results
+
+
+def test_without_seed_noise_every_resample_gives_the_same_speedup():
+    entries, results = _noisy_study(0.0, 5)
+    _, per_config, verdict = ap.analyse(entries, results, "growing", "test", "abc", replicates=50)
+    best = verdict["best"]
+    assert best["speedup_at_equal_error"] == pytest.approx(2.0, rel=1e-9)
+    assert best["speedup_interval"] == pytest.approx([2.0, 2.0], rel=1e-9)
+    assert best["p_speedup_at_least_goal"] == 1.0 and best["best_share"] == 1.0
+    assert verdict["resampling"] == {"replicates": 50, "seeds": 5, "goal_speedup": ap.GOAL_SPEEDUP,
+                                     "no_best_share": 0.0}
+    row = per_config.set_index("config").loc["thermal-68m"]
+    assert (row["speedup_p05"], row["speedup_p95"]) == pytest.approx((2.0, 2.0))
+    assert "between 2.00x and 2.00x (5-95%), reaches 1.6x in 100% of them" in verdict["verdict"]
+
+
+@settings(max_examples=5, deadline=None)
+@given(noise=st.floats(0.003, 0.02))
+def test_the_interval_holds_the_speedup_widens_with_noise_and_narrows_with_seeds(noise):
+    """Seed scatter of the variant widens its interval about linearly; four times the seeds (with the same
+    scatter) narrow it (about twice, as 1/sqrt(n))."""
+    widths = {}
+    for amplitude, seeds in ((noise, 4), (2 * noise, 4), (noise, 16)):
+        shifts = np.tile([-1.0, -0.3, 0.3, 1.0], seeds // 4)      # the same spread of seeds at 4 and 16
+        entries, results = _noisy_study(amplitude, seeds, shifts)
+        _, _, verdict = ap.analyse(entries, results, "growing", "test", "abc", replicates=200)
+        v = verdict["variants"][0]
+        lo, hi = v["speedup_interval"]
+        assert lo <= v["speedup_at_equal_error"] * 1.02 and v["speedup_at_equal_error"] <= hi * 1.02
+        widths[(amplitude, seeds)] = hi - lo
+    assert widths[(noise, 4)] > 0
+    assert widths[(2 * noise, 4)] > 1.4 * widths[(noise, 4)]
+    assert widths[(noise, 16)] < 0.75 * widths[(noise, 4)]
+
+
+@settings(max_examples=10, deadline=None)
+@given(n_times=st.integers(2, 30), n_z=st.integers(1, 20), seed=st.integers(0, 10**6))
+def test_series_table_gives_back_every_signature(n_times, n_z, seed):
+    rng = np.random.default_rng(seed)
+    def sig():
+        out = {"time": np.sort(rng.uniform(0, 1000, n_times))}
+        for key, _ in ap.SERIES:
+            out[key] = rng.uniform(0, 1, n_times)
+        out["base"][rng.integers(n_times)] = np.nan          # a time without cloud
+        out["z"], out["profile"] = np.sort(rng.uniform(0, 3000, n_z)), rng.uniform(0, 1, n_z)
+        return out
+    keys = [("uniform-68m", 0), ("uniform-68m", 1), ("thermal-68m", 0), ("thermal-68m", 1)]
+    sigs = [sig(), sig(), None, sig()]
+    back = ap.signatures_from_series(ap.series_frame(keys, sigs))
+    assert set(back) == {k for k, s in zip(keys, sigs) if s is not None}
+    for key, s in zip(keys, sigs):
+        if s is None:
+            continue
+        for name in ("time", "z", "profile") + tuple(k for k, _ in ap.SERIES):
+            np.testing.assert_array_equal(back[key][name], s[name])
+
+
+def test_from_data_redoes_the_resampling_from_the_series(tmp_path):
+    entries, results = _noisy_study(0.01, 6)
+    per_run, per_config, verdict = ap.analyse(entries, results, "growing", "test", "abc", replicates=100)
+    per_run.to_csv(tmp_path / "adaptive_pareto.csv", index=False)
+    per_config.to_csv(tmp_path / "adaptive_pareto_configs.csv", index=False)
+    series = ap.series_frame([(c.name, seed) for c, seed, _ in entries], [ap.signature(r) for r in results])
+    series.to_csv(tmp_path / "adaptive_pareto_series.csv", index=False)
+    again = ap.rebuild_verdict(tmp_path, "growing", replicates=100)
+    assert again["best"]["speedup_interval"] == pytest.approx(verdict["best"]["speedup_interval"], rel=1e-9)
+    assert again["resampling"] == verdict["resampling"]
+    (tmp_path / "adaptive_pareto_series.csv").unlink()        # older data: no series, no interval
+    older = ap.rebuild_verdict(tmp_path, "growing")
+    assert older["resampling"] is None and "speedup_interval" not in older["best"]
+    assert older["best"]["speedup_at_equal_error"] == pytest.approx(verdict["best"]["speedup_at_equal_error"])

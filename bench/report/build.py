@@ -342,7 +342,9 @@ def _summary_adaptive(inp: Inputs) -> str | None:
                      f"{v.get('noise_floor') or math.nan:.2g}): {best.get('ms_per_step', math.nan):.3g} against "
                      f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step"
                      + (f" (stable in {best['stable_seeds']} of {best['seeds']} seeds)"
-                        if best.get("stable_seeds") is not None and best.get("seeds") else ""))
+                        if best.get("stable_seeds") is not None and best.get("seeds") else "")
+                     + (", 5-95% over resampled seeds {:.2f}-{:.2f}x".format(*best["speedup_interval"])
+                        if best.get("speedup_interval") else ""))
     if parts:
         return "; ".join(parts)
     path = inp.data / "sweep_verdict.json"
@@ -959,12 +961,16 @@ def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
             + ("; open markers: left out of the verdict (unstable in some seeds)." if excluded else ".")))
         cols = [c for c in ("config", "stable_seeds", "seeds", "particles", "ms_per_step", "pbf_ms_per_particle",
                             "error", "error_seed_spread",
-                            "e_cover", "e_volume", "e_lwp", "e_base", "e_top", "e_profile", "speedup_at_equal_error")
+                            "e_cover", "e_volume", "e_lwp", "e_base", "e_top", "e_profile", "speedup_at_equal_error",
+                            "speedup_p05", "speedup_p95")
                 if c in configs.columns]
         rule = verdict.get("min_stable_seeds")
+        resampling = verdict.get("resampling") or {}
         sec.add("table", _table(configs[cols]), caption=f"{scene}: one row per configuration (means over its stable "
                 "seeds)" + (f"; the verdict and the uniform front use only configurations stable in at least {rule} "
-                            "seeds" if rule else ""))
+                            "seeds" if rule else "")
+                + (f"; speedup_p05 and speedup_p95: the 5th and 95th percentiles of the speed-up over "
+                   f"{resampling['replicates']} resamples of the seeds" if resampling else ""))
         for png in sorted(inp.renders.glob(f"pareto_{scene}_*.png")):
             name = png.stem[len(f"pareto_{scene}_"):]
             sec.add("image", plots.png_file_uri(png), caption=(

@@ -37,28 +37,39 @@ for a reader who wants to see what the survivors would say.  Configurations that
 verdict's ``excluded`` with their stable/total seed counts and the reasons; ``best`` carries the stable seeds it
 rests on.  When no adaptive variant qualifies, ``best`` is null and the verdict says so.
 
+How sure the speed-up is.  A variant's speed-up rests on its own seeds, the uniform runs' and the reference's,
+all finite samples of a chaotic flow.  The study resamples the seeds (a bootstrap: draw the seed numbers with
+replacement, the same draw for every configuration, and redo the whole analysis, :data:`BOOTSTRAP_REPLICATES`
+times) and reports each variant's 5-95% interval of the speed-up, the share of resamples where it reaches
+:data:`GOAL_SPEEDUP` and the share where it is the best variant.
+
 Outputs (OUT/data): ``adaptive_pareto.csv`` (one row per run, with the configuration's errors repeated on
-each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configuration) and
-``adaptive_verdict.json``::
+each of its seeds' rows), ``adaptive_pareto_configs.csv`` (one row per configuration),
+``adaptive_pareto_series.csv`` (every run's time series and final profile, long format: what ``--from-data``
+needs to redo the errors and the resampling) and ``adaptive_verdict.json``::
 
     {"scene": ..., "cost_ratio_per_particle": x,       # PBF ms per adaptive particle / per uniform particle
      "min_stable_seeds": n,                             # the rule the verdict applied
      "variants": [{"name", "spacing_m", "criterion", "max_level", "threshold_scale", "adapt_every", "pair_kernel",
                    "speedup_at_equal_error",
                    "error", "ms_per_step",
-                   "particles", "cost_ratio_per_particle", "stable_seeds", "seeds"}],   # the qualifying ones
+                   "particles", "cost_ratio_per_particle", "stable_seeds", "seeds",
+                   "speedup_interval": [p5, p95], "p_speedup_at_least_goal", "best_share"}],  # the qualifying ones
      "excluded": [{"name", "kind", "stable_seeds", "seeds", "reasons", ...}],
-     "best": {... one of variants ...} or null, "verdict": "...", "noise_floor": f, "device": ..., "commit": ...}
+     "best": {... one of variants ...} or null, "verdict": "...", "noise_floor": f,
+     "resampling": {"replicates", "seeds", "goal_speedup", "no_best_share"} or null, "device": ..., "commit": ...}
 
 where a variant's speed-up is the uniform front's ms/step, interpolated (log-log) at the variant's error,
 divided by the variant's own; a variant more accurate than every uniform run, or less than all of them, has
 no speed-up (null) and the verdict says so.  The cost ratio is the median over the qualifying variants.
 
-``--from-data`` rebuilds ``adaptive_verdict[_SCENE].json`` from ``adaptive_pareto[_SCENE].csv`` and
-``adaptive_pareto_configs[_SCENE].csv`` in OUT/data without running anything (device and commit are kept from
+``--from-data`` rebuilds ``adaptive_verdict[_SCENE].json`` from ``adaptive_pareto[_SCENE].csv``,
+``adaptive_pareto_configs[_SCENE].csv`` and (where it is there) ``adaptive_pareto_series[_SCENE].csv`` in OUT/data
+without running anything (device and commit are kept from
 the verdict file already there, else taken from the runs' CSV: they belong to the runs, not to the rebuild).
 
-    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--min-stable-seeds N] [--scale gpu]
+    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--min-stable-seeds N] [--resamples 1000]
+                             [--scale gpu]
     cloudpbf adaptive-pareto --scene growing --from-data --out reports/gpu
 """
 from __future__ import annotations
@@ -104,6 +115,11 @@ SPACING_FACTOR = {"gpu": 1.0, "cpu": 3.0, "smoke": 6.0}
 MIN_STABLE_SEEDS: int | None = None
 """Stable seeds a configuration needs to enter the verdict (uniform front and adaptive variants); None: all the
 seeds the study ran (see the module's docstring for why)."""
+GOAL_SPEEDUP = 1.6
+"""The speed-up at equal error the study measures its variants against: the paper's own ratio (Table 1's totals,
+1219 against 736 ms per step for the growing cloud, 1.66), rounded down."""
+BOOTSTRAP_REPLICATES = 1000
+"""Resamples of the seeds behind each variant's speed-up interval (see :func:`bootstrap_speedups`)."""
 SERIES = (("cover", "cloud_cover"), ("volume", "cloudy_volume"), ("lwp", "lwp_mean"),
           ("base", "cloud_base"), ("top", "cloud_top"))
 
@@ -257,6 +273,53 @@ def errors(sig: dict | None, ref: dict | None) -> dict:
     return out
 
 
+def series_frame(keys: list[tuple[str, int]], sigs: list[dict | None]) -> pd.DataFrame:
+    """The runs' signatures as one long table (``adaptive_pareto_series.csv``): config, seed, series (cover,
+    volume, lwp, base, top: over time_s; profile: over z), coordinate (s or m) and value; none for a run
+    without a signature (unstable, or no snapshot).  :func:`signatures_from_series` reads it back, so that
+    ``--from-data`` can redo every error and the seed resampling without the runs."""
+    frames = []
+    for (config, seed), sig in zip(keys, sigs):
+        if sig is None:
+            continue
+        parts = [(key, sig["time"], sig[key]) for key, _ in SERIES]
+        if "z" in sig:
+            parts.append(("profile", sig["z"], sig["profile"]))
+        for key, x, v in parts:
+            frames.append(pd.DataFrame({"config": config, "seed": int(seed), "series": key,
+                                        "coordinate": np.asarray(x, float), "value": np.asarray(v, float)}))
+    columns = ["config", "seed", "series", "coordinate", "value"]
+    return pd.concat(frames, ignore_index=True)[columns] if frames else pd.DataFrame(columns=columns)
+
+
+def signatures_from_series(frame: pd.DataFrame) -> dict[tuple[str, int], dict]:
+    """(config, seed) -> signature, from :func:`series_frame`'s table (the inverse of that function)."""
+    out = {}
+    for (config, seed), run in frame.groupby(["config", "seed"], sort=False):
+        by = {k: g.sort_values("coordinate") for k, g in run.groupby("series", sort=False)}
+        if "cover" not in by:
+            continue
+        sig = {"time": by["cover"]["coordinate"].to_numpy(float)}
+        for key, _ in SERIES:
+            sig[key] = (by[key]["value"].to_numpy(float) if key in by else np.full(len(sig["time"]), np.nan))
+        if "profile" in by:
+            sig["z"], sig["profile"] = by["profile"]["coordinate"].to_numpy(float), by["profile"]["value"].to_numpy(float)
+        out[(str(config), int(seed))] = sig
+    return out
+
+
+def seed_groups(per_run: pd.DataFrame, sigs: dict[tuple[str, int], dict]) -> dict[str, dict[int, tuple]]:
+    """config -> {seed: (signature or None, ms per step)} from the per-run rows and the runs' signatures; an
+    unstable run has no signature (it enters no mean)."""
+    out: dict[str, dict[int, tuple]] = {}
+    for row in per_run.itertuples():
+        stable = _truthy(row.stable)
+        key = (str(row.config), int(row.seed))
+        out.setdefault(str(row.config), {})[int(row.seed)] = (sigs.get(key) if stable else None,
+                                                              float(row.ms_per_step) if stable else math.nan)
+    return out
+
+
 def _ms_per_step(result: runs.RunResult, steps: int) -> float:
     return 1e3 * float(result.step_wall_s) / steps if result.stable and steps else math.nan
 
@@ -298,10 +361,107 @@ def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
                            u["pbf_ms_per_particle"].to_numpy(float)))
 
 
+def bootstrap_speedups(groups: dict[str, dict[int, tuple]], kinds: dict[str, str], qualified: set[str],
+                       replicates: int = BOOTSTRAP_REPLICATES, seed: int = 0) -> dict:
+    """Each qualifying adaptive variant's speed-up at equal error over `replicates` resamples of the seeds.
+
+    A resample draws the study's seeds with replacement, one draw for all configurations (every configuration
+    ran the same seeds, so they stay paired), and repeats the whole analysis on it: the reference's seed mean,
+    each qualifying configuration's seed mean, its error and ms per step, the uniform front and the speed-ups.
+    The spread of a variant's speed-up over the resamples is what the finite number of seeds leaves unknown,
+    the reference's seeds included; picking the best of many variants on the same seeds is not corrected for
+    (``best_share`` says how often each one wins).
+
+    Returns ``{"speedups": {config: array of speed-ups, NaN where the variant's error is outside the front},
+    "best": array of the best variant's name per resample ("" where none is scored), "replicates": n}``."""
+    rng = np.random.default_rng(seed)
+    seeds = sorted({s for runs_ in groups.values() for s in runs_})
+    ref_name = next((c for c, k in kinds.items() if k == "reference"), None)
+    uniform = [c for c in groups if kinds.get(c) == "uniform" and c in qualified]
+    adaptive = [c for c in groups if kinds.get(c) == "adaptive" and c in qualified]
+    speedups = {c: np.full(replicates, np.nan) for c in adaptive}
+    best = np.full(replicates, "", dtype=object)
+    if ref_name is None or not seeds or not adaptive:
+        return {"speedups": speedups, "best": best, "replicates": int(replicates)}
+
+    # each configuration's runs interpolated once onto its first stable seed's times and heights (as
+    # mean_signature does), so that a resample's seed mean is a mean over rows
+    aligned = {}
+    for config in [ref_name] + uniform + adaptive:
+        runs_ = groups[config]
+        order = sorted(runs_)
+        ms = np.array([runs_[s][1] for s in order], float)
+        stable = [s for s in order if runs_[s][0] is not None]
+        row_of = {s: i for i, s in enumerate(stable)}
+        stacks = None
+        if stable:
+            first = runs_[stable[0]][0]
+            stacks = {"time": first["time"]}
+            for key, _ in SERIES:
+                stacks[key] = np.array([_interp_nan(first["time"], runs_[s][0]["time"], runs_[s][0][key])
+                                        for s in stable])
+            if all("z" in runs_[s][0] for s in stable):
+                stacks["z"] = first["z"]
+                stacks["profile"] = np.array([np.interp(first["z"], runs_[s][0]["z"], runs_[s][0]["profile"])
+                                              for s in stable])
+        aligned[config] = (order, ms, row_of, stacks)
+
+    def resampled(config, draw):
+        order, ms, row_of, stacks = aligned[config]
+        index = {s: i for i, s in enumerate(order)}
+        picked = [index[s] for s in draw if s in index]
+        rows = [row_of[s] for s in draw if s in row_of]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean_ms = float(np.nanmean(ms[picked])) if picked else math.nan
+            if not rows:
+                return None, mean_ms
+            sig = {"time": stacks["time"]}
+            for key, _ in SERIES:
+                sig[key] = np.nanmean(stacks[key][rows], axis=0)
+        if "z" in stacks:
+            sig["z"], sig["profile"] = stacks["z"], stacks["profile"][rows].mean(axis=0)
+        return sig, mean_ms
+
+    for b in range(replicates):
+        draw = rng.choice(seeds, size=len(seeds), replace=True)
+        reference, _ = resampled(ref_name, draw)
+        rows = {}
+        for config in uniform + adaptive:
+            sig, ms = resampled(config, draw)
+            rows[config] = (errors(sig, reference)["error"], ms)
+        u = pd.DataFrame([{"config": c, "error": rows[c][0], "ms_per_step": rows[c][1]} for c in uniform])
+        u = u[np.isfinite(u["error"]) & np.isfinite(u["ms_per_step"])] if len(u) else u
+        front = uniform_front(u) if len(u) else u
+        top, top_s = "", -math.inf
+        for config in adaptive:
+            error, ms = rows[config]
+            t = time_at_error(front, error)
+            s = t / ms if np.isfinite(t) and np.isfinite(ms) and ms > 0 else math.nan
+            speedups[config][b] = s
+            if np.isfinite(s) and s > top_s:
+                top, top_s = config, s
+        best[b] = top
+    return {"speedups": speedups, "best": best, "replicates": int(replicates)}
+
+
+def speedup_interval(samples: np.ndarray, goal: float = GOAL_SPEEDUP) -> dict:
+    """The 5th and 95th percentiles of a variant's resampled speed-ups (over the resamples where it has one),
+    the share of resamples where it has one, and the share where it reaches `goal`."""
+    samples = np.asarray(samples, float)
+    ok = np.isfinite(samples)
+    if not ok.any():
+        return {"speedup_interval": None, "speedup_defined_share": 0.0, "p_speedup_at_least_goal": 0.0}
+    lo, hi = np.percentile(samples[ok], [5.0, 95.0])
+    return {"speedup_interval": [float(lo), float(hi)], "speedup_defined_share": float(ok.mean()),
+            "p_speedup_at_least_goal": float(np.mean(ok & (samples >= goal)))}
+
+
 def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.RunResult], scene_name: str,
-            device: str, commit: str, min_stable_seeds: int | None = MIN_STABLE_SEEDS
-            ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
-    """(per-run rows, per-configuration rows, verdict)."""
+            device: str, commit: str, min_stable_seeds: int | None = MIN_STABLE_SEEDS,
+            replicates: int = BOOTSTRAP_REPLICATES) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+    """(per-run rows, per-configuration rows, verdict); `replicates` resamples of the seeds give each variant's
+    speed-up interval (0: none)."""
     sigs = [signature(r) for r in results]
     by_config: dict[Config, list[int]] = {}
     for i, (config, _, _) in enumerate(entries):
@@ -341,9 +501,21 @@ def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.
                              "error_this_seed": e_seed, **{f"config_{k}": v for k, v in err.items()},
                              "device": res.device, "commit": commit, "run_dir": str(res.path)})
     per_run, per_config = pd.DataFrame(run_rows), pd.DataFrame(config_rows)
-    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds)
-    per_config["speedup_at_equal_error"] = per_config["config"].map(verdict.pop("_speedups"))
+    groups = seed_groups(per_run, {(config.name, seed): sigs[i] for i, (config, seed, _) in enumerate(entries)})
+    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds, groups=groups,
+                            replicates=replicates)
+    add_verdict_columns(per_config, verdict)
     return per_run, per_config, verdict
+
+
+def add_verdict_columns(per_config: pd.DataFrame, verdict: dict) -> None:
+    """Each adaptive configuration's speed-up (and, where the seeds were resampled, its 5-95% interval) as
+    columns of the per-configuration table; pops the verdict's private ``_speedups``."""
+    per_config["speedup_at_equal_error"] = per_config["config"].map(verdict.pop("_speedups"))
+    intervals = {v["name"]: v.get("speedup_interval") for v in verdict["variants"] + verdict["excluded"]}
+    for k, column in enumerate(("speedup_p05", "speedup_p95")):
+        per_config[column] = per_config["config"].map(
+            lambda c: (intervals.get(c) or [math.nan, math.nan])[k])
 
 
 def required_stable_seeds(per_config: pd.DataFrame, min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> int:
@@ -386,12 +558,16 @@ def _none_if_nan(x):
 
 
 def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_name: str, device: str, commit: str,
-                  min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> dict:
+                  min_stable_seeds: int | None = MIN_STABLE_SEEDS, groups: dict | None = None,
+                  replicates: int = BOOTSTRAP_REPLICATES) -> dict:
     """The verdict from the per-configuration rows (``adaptive_pareto_configs.csv``) and the per-run rows
     (``adaptive_pareto.csv``: failure reasons and the reference seeds' errors, for the noise floor).
 
     Only configurations stable in at least :func:`required_stable_seeds` seeds, with a finite error and time,
-    enter the uniform front and compete for ``best``; the others are listed under ``excluded``.  The result has
+    enter the uniform front and compete for ``best``; the others are listed under ``excluded``.  With `groups`
+    (:func:`seed_groups`: every run's signature and time) and `replicates` > 0, the seeds are resampled
+    (:func:`bootstrap_speedups`) and each qualifying variant gets its speed-up's 5-95% interval, the share of
+    resamples where it reaches :data:`GOAL_SPEEDUP` and the share where it is the best variant.  The result has
     a private ``_speedups`` (config -> speed-up of every adaptive configuration with an error, for the CSV)."""
     required = required_stable_seeds(per_config, min_stable_seeds)
     reasons = _qualification(per_run, per_config, required)
@@ -427,15 +603,24 @@ def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_
                              "reasons": reasons[row.config]})
         elif row.kind == "adaptive":
             variants.append(entry)
+    resampling = None
+    if groups and replicates > 0:
+        kinds = dict(zip(per_config["config"].astype(str), per_config["kind"].astype(str)))
+        boot = bootstrap_speedups(groups, kinds, {c for c, why in reasons.items() if not why}, int(replicates))
+        for entry in variants:
+            entry |= speedup_interval(boot["speedups"][entry["name"]])
+            entry["best_share"] = float(np.mean(boot["best"] == entry["name"]))
+        resampling = {"replicates": boot["replicates"], "seeds": int(per_config["seeds"].max()),
+                      "goal_speedup": GOAL_SPEEDUP, "no_best_share": float(np.mean(boot["best"] == ""))}
     costs = [v["cost_ratio_per_particle"] for v in variants if v["cost_ratio_per_particle"] is not None]
     verdict = {"scene": scene_name, "cost_ratio_per_particle": float(np.median(costs)) if costs else None,
                "min_stable_seeds": required, "variants": variants, "excluded": excluded,
                "noise_floor": _noise_floor(per_run),
                "reference_stable_seeds": _reference_seeds(per_config),
                "uniform_front": front[["config", "error", "ms_per_step"]].to_dict("records"),
-               "device": device, "commit": commit}
+               "resampling": resampling, "device": device, "commit": commit}
     verdict["best"], verdict["verdict"] = _verdict_text(variants, excluded, front, verdict["noise_floor"],
-                                                        scene_name, required)
+                                                        scene_name, required, resampling)
     verdict["_speedups"] = speedups
     return verdict
 
@@ -454,7 +639,7 @@ def _reference_seeds(per_config: pd.DataFrame) -> str | None:
 
 
 def _verdict_text(variants: list[dict], excluded: list[dict], front: pd.DataFrame, noise_floor: float,
-                  scene_name: str, required: int):
+                  scene_name: str, required: int, resampling: dict | None = None):
     left_out = [e for e in excluded if e["kind"] == "adaptive"]
     left_uniform = [e for e in excluded if e["kind"] == "uniform"]
     note = ""
@@ -470,6 +655,12 @@ def _verdict_text(variants: list[dict], excluded: list[dict], front: pd.DataFram
         text = (f"{scene_name}: the best adaptive variant, {best['name']} (stable in {best['stable_seeds']} of "
                 f"{best['seeds']} seeds), is {s if s >= 1 else 1 / s:.2f}x {word} than uniform particles at its "
                 f"error {best['error']:.3f} (seed-noise floor {noise_floor:.3f}).")
+        if resampling and best.get("speedup_interval"):
+            lo, hi = best["speedup_interval"]
+            text += (f" Over {resampling['replicates']} resamples of its {resampling['seeds']} seeds the speed-up "
+                     f"lies between {lo:.2f}x and {hi:.2f}x (5-95%), reaches {resampling['goal_speedup']:g}x in "
+                     f"{100 * best['p_speedup_at_least_goal']:.0f}% of them, and this variant is the best in "
+                     f"{100 * best['best_share']:.0f}%.")
         return best, text + note
     if not variants:
         what = "adaptive variant" if left_out else "adaptive run"
@@ -486,10 +677,12 @@ def _verdict_text(variants: list[dict], excluded: list[dict], front: pd.DataFram
 
 
 def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int | None = MIN_STABLE_SEEDS,
-                    write: bool = True) -> dict:
+                    write: bool = True, replicates: int = BOOTSTRAP_REPLICATES) -> dict:
     """The verdict again from DATA's ``adaptive_pareto[_SCENE].csv`` and ``adaptive_pareto_configs[_SCENE].csv``,
     without running anything; device and commit stay those of the verdict already there (else the runs' CSV).
-    Writes ``adaptive_verdict[_SCENE].json`` unless `write` is False."""
+    Where ``adaptive_pareto_series[_SCENE].csv`` is there too (studies from 2026-11-26 on), the seeds are
+    resampled as in the study.  Writes ``adaptive_verdict[_SCENE].json`` (and the configurations' speed-up
+    columns) unless `write` is False."""
     if scene_name not in SCENES:
         raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
     data_dir = Path(data_dir)
@@ -505,10 +698,17 @@ def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int
     old = json.loads(verdict_path.read_text()) if verdict_path.is_file() else {}
     device = old.get("device") or _first(per_run, "device") or "unknown"
     commit = old.get("commit") or _first(per_run, "commit") or "unknown"
-    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds)
-    verdict.pop("_speedups")
+    series_path = data_dir / f"adaptive_pareto_series{suffix}.csv"
+    groups = None
+    if series_path.is_file():
+        series = pd.read_csv(series_path, float_precision="round_trip")
+        groups = seed_groups(per_run, signatures_from_series(series))
+    verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds, groups=groups,
+                            replicates=replicates)
+    add_verdict_columns(per_config, verdict)
     if write:
         runs.atomic_write_json(verdict_path, verdict)
+        runs.write_csv(per_config, configs_path)
     return verdict
 
 
@@ -518,7 +718,8 @@ def _first(frame: pd.DataFrame, column: str) -> str | None:
 
 
 def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: int = 3,
-                        min_stable_seeds: int | None = MIN_STABLE_SEEDS) -> dict:
+                        min_stable_seeds: int | None = MIN_STABLE_SEEDS,
+                        replicates: int = BOOTSTRAP_REPLICATES) -> dict:
     """Run (or read) the study for one scene; write adaptive_pareto[_SCENE].csv and the verdict json."""
     if scene_name not in SCENES:
         raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
@@ -529,8 +730,11 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     entries = plan(ctx, scene_name, int(seeds))
     results = ctx.run_parallel([e[2] for e in entries], f"adaptive-pareto {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
-    per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds)
+    per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds,
+                                           replicates)
     suffix = "" if scene_name == "growing" else f"_{scene_name}"
+    series = series_frame([(config.name, seed) for config, seed, _ in entries], [signature(r) for r in results])
+    runs.write_csv(series, ctx.data / f"adaptive_pareto_series{suffix}.csv")
     runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")
     runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
     runs.atomic_write_json(ctx.data / f"adaptive_verdict{suffix}.json", verdict)
@@ -617,6 +821,9 @@ def adaptive_pareto_command(
         "--min-stable-seeds", min=1, max=100,
         help="stable seeds a configuration needs to enter the verdict (uniform front and best variant); "
              "default: every seed run")] = None,
+    resamples: Annotated[int, typer.Option(
+        min=0, max=100000, help="resamples of the seeds behind each variant's speed-up interval (0: none)")
+    ] = BOOTSTRAP_REPLICATES,
     from_data: Annotated[bool, typer.Option(
         "--from-data", help="run nothing: rebuild OUT/data/adaptive_verdict[_SCENE].json from the study's CSVs "
                             "there (device and commit stay those of the runs)")] = False,
@@ -629,7 +836,7 @@ def adaptive_pareto_command(
         raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
     if from_data:
         try:
-            verdict = rebuild_verdict(Path(out) / "data", scene, min_stable_seeds)
+            verdict = rebuild_verdict(Path(out) / "data", scene, min_stable_seeds, replicates=resamples)
         except FileNotFoundError as exc:
             raise click.UsageError(str(exc)) from None
         _echo_verdict(verdict)
@@ -638,9 +845,9 @@ def adaptive_pareto_command(
         raise typer.BadParameter(f"{min_stable_seeds}: more than --seeds {seeds}", param_hint="'--min-stable-seeds'")
     with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
-            result = run_adaptive_pareto(ctx, scene, seeds, min_stable_seeds)
+            result = run_adaptive_pareto(ctx, scene, seeds, min_stable_seeds, resamples)
     cols = ["config", "stable_seeds", "seeds", "particles", "ms_per_step", "error", "error_seed_spread", "e_base",
-            "e_top", "e_profile", "speedup_at_equal_error"]
+            "e_top", "e_profile", "speedup_at_equal_error", "speedup_p05", "speedup_p95"]
     typer.echo(result["configs"][cols].to_string(index=False))
     _echo_verdict(result["verdict"])
 
@@ -658,5 +865,6 @@ def _echo_verdict(verdict: dict) -> None:
 
 register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
                report=(ReportSection("adaptive_pareto", "Adaptive mode at equal error", "bench.report.build:_adaptive_pareto", 70),),
-               outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_verdict.json"),
+               outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_pareto_series.csv",
+                        "adaptive_verdict.json"),
                command=adaptive_pareto_command))
