@@ -81,6 +81,9 @@ def test_analysis_writes_a_verdict_with_cost_ratio_and_speedup():
     v = verdict["variants"][0]
     assert v["speedup_at_equal_error"] == pytest.approx(2.0, rel=0.02)
     assert verdict["cost_ratio_per_particle"] == pytest.approx(1.2, rel=1e-6)
+    # as many particles as the 43 m run (8 ms) and its error: placement buys nothing, the step costs half
+    assert v["uniform_ms_at_equal_particles"] == pytest.approx(8.0)
+    assert (v["speedup_from_particles"], v["step_cost_ratio"]) == pytest.approx((1.0, 0.5), rel=0.02)
     assert verdict["noise_floor"] < 0.01
     assert "2.00x faster" in verdict["verdict"]
 
@@ -358,3 +361,19 @@ def test_from_data_redoes_the_resampling_from_the_series(tmp_path):
     older = ap.rebuild_verdict(tmp_path, "growing")
     assert older["resampling"] is None and "speedup_interval" not in older["best"]
     assert older["best"]["speedup_at_equal_error"] == pytest.approx(verdict["best"]["speedup_at_equal_error"])
+
+
+@settings(max_examples=25, deadline=None)
+@given(exponent=st.floats(0.3, 1.5), count=st.floats(1.1e5, 7e5), overhead=st.floats(0.8, 2.0))
+def test_speedup_is_what_the_particles_buy_over_what_the_step_costs(exponent, count, overhead):
+    """Uniform runs with t = c N^p: the time at a count inside their range is exact (log-log), and the two
+    factors multiply to the speed-up."""
+    n = np.array([1e5, 2e5, 4e5, 8e5])
+    uniform = pd.DataFrame({"particles": n, "ms_per_step": 2e-3 * n**exponent})
+    t_count = ap.uniform_time_at_count(uniform, count)
+    assert t_count == pytest.approx(2e-3 * count**exponent, rel=1e-9)
+    assert math.isnan(ap.uniform_time_at_count(uniform, 9e5))      # beyond the uniform runs: unknown
+    t_error, t_variant = 3.0 * t_count, overhead * t_count
+    f = ap.speedup_factors(t_error, t_count, t_variant)
+    assert f["step_cost_ratio"] == pytest.approx(overhead)
+    assert f["speedup_from_particles"] / f["step_cost_ratio"] == pytest.approx(t_error / t_variant)

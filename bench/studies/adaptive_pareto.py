@@ -54,13 +54,15 @@ needs to redo the errors and the resampling) and ``adaptive_verdict.json``::
                    "speedup_at_equal_error",
                    "error", "ms_per_step",
                    "particles", "cost_ratio_per_particle", "stable_seeds", "seeds",
-                   "speedup_interval": [p5, p95], "p_speedup_at_least_goal", "best_share"}],  # the qualifying ones
+                   "speedup_interval": [p5, p95], "p_speedup_at_least_goal", "best_share",
+                   "uniform_ms_at_equal_particles", "speedup_from_particles", "step_cost_ratio"}],  # qualifying ones
      "excluded": [{"name", "kind", "stable_seeds", "seeds", "reasons", ...}],
      "best": {... one of variants ...} or null, "verdict": "...", "noise_floor": f,
      "resampling": {"replicates", "seeds", "goal_speedup", "no_best_share"} or null, "device": ..., "commit": ...}
 
 where a variant's speed-up is the uniform front's ms/step, interpolated (log-log) at the variant's error,
-divided by the variant's own; a variant more accurate than every uniform run, or less than all of them, has
+divided by the variant's own (and split, :func:`speedup_factors`, into what its particle placement buys and what
+its step costs beyond a uniform step of its particle count); a variant more accurate than every uniform run, or less than all of them, has
 no speed-up (null) and the verdict says so.  The cost ratio is the median over the qualifying variants.
 
 ``--from-data`` rebuilds ``adaptive_verdict[_SCENE].json`` from ``adaptive_pareto[_SCENE].csv``,
@@ -361,6 +363,34 @@ def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
                            u["pbf_ms_per_particle"].to_numpy(float)))
 
 
+def uniform_time_at_count(uniform: pd.DataFrame, particles: float) -> float:
+    """ms/step of a uniform run with `particles` particles, log-log interpolated between the uniform runs; NaN
+    outside their range of counts."""
+    u = uniform.dropna(subset=["ms_per_step", "particles"]).sort_values("particles")
+    if len(u) < 2 or not np.isfinite(particles) or particles <= 0:
+        return math.nan
+    n, t = np.log(u["particles"].to_numpy(float)), np.log(u["ms_per_step"].to_numpy(float))
+    if not n.min() <= math.log(particles) <= n.max():
+        return math.nan
+    return float(np.exp(np.interp(math.log(particles), n, t)))
+
+
+def speedup_factors(t_at_error: float, t_at_count: float, ms_per_step: float) -> dict:
+    """A variant's speed-up at equal error split in two factors whose product it is::
+
+        speedup = t_u(e) / t_a = [t_u(e) / t_u(N_a)] * [t_u(N_a) / t_a]
+                =  speedup_from_particles  /  step_cost_ratio
+
+    with t_u(e) the uniform front's time at the variant's error, t_u(N_a) a uniform run's time at the variant's
+    mean particle count and t_a the variant's own: what placing the particles adaptively buys (the speed-up if
+    an adaptive particle-step cost what a uniform one does), and what the adaptive step costs beyond a
+    uniform step of its size (neighbour lists over mixed levels, splitting, merging, the smoothing limiter)."""
+    ok = np.isfinite(t_at_count) and t_at_count > 0
+    return {"uniform_ms_at_equal_particles": _none_if_nan(t_at_count),
+            "speedup_from_particles": _none_if_nan(t_at_error / t_at_count) if ok else None,
+            "step_cost_ratio": _none_if_nan(ms_per_step / t_at_count) if ok else None}
+
+
 def bootstrap_speedups(groups: dict[str, dict[int, tuple]], kinds: dict[str, str], qualified: set[str],
                        replicates: int = BOOTSTRAP_REPLICATES, seed: int = 0) -> dict:
     """Each qualifying adaptive variant's speed-up at equal error over `replicates` resamples of the seeds.
@@ -597,7 +627,8 @@ def build_verdict(per_run: pd.DataFrame | None, per_config: pd.DataFrame, scene_
                       "error_seed_spread": _none_if_nan(row.error_seed_spread) if row.stable_seeds >= 2 else None,
                       "particles": float(row.particles),
                       "cost_ratio_per_particle": _none_if_nan(row.pbf_ms_per_particle / base)
-                      if np.isfinite(base) and base else None}
+                      if np.isfinite(base) and base else None,
+                      **speedup_factors(t_uniform, uniform_time_at_count(uniform, row.particles), row.ms_per_step)}
         if reasons[row.config]:
             excluded.append({"name": row.config, "kind": row.kind, **{k: v for k, v in entry.items() if k != "name"},
                              "reasons": reasons[row.config]})
@@ -655,6 +686,11 @@ def _verdict_text(variants: list[dict], excluded: list[dict], front: pd.DataFram
         text = (f"{scene_name}: the best adaptive variant, {best['name']} (stable in {best['stable_seeds']} of "
                 f"{best['seeds']} seeds), is {s if s >= 1 else 1 / s:.2f}x {word} than uniform particles at its "
                 f"error {best['error']:.3f} (seed-noise floor {noise_floor:.3f}).")
+        if best.get("speedup_from_particles") is not None:
+            text += (f" Its {best['particles']:,.0f} particles would give {best['speedup_from_particles']:.2f}x if "
+                     f"they cost what uniform particles do (a uniform run of that size takes "
+                     f"{best['uniform_ms_at_equal_particles']:.2f} ms per step); its step costs "
+                     f"{best['step_cost_ratio']:.2f}x that.")
         if resampling and best.get("speedup_interval"):
             lo, hi = best["speedup_interval"]
             text += (f" Over {resampling['replicates']} resamples of its {resampling['seeds']} seeds the speed-up "
