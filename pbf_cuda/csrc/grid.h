@@ -250,7 +250,8 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
     // Squared distance (m^2) from q to the slab of cells at offset d along axis a.
     auto gap2 = [&](int a, int d) {
         float lo = float(d) - rel[a], hi = rel[a] - float(d + 1);
-        float e = fmaxf(0.0f, fmaxf(lo, hi)) * g.cell[a];
+        float m = lo > hi ? lo : hi;   // max(0, lo, hi) without fmaxf, a library call on the CPU (NaN-aware)
+        float e = (m > 0.0f ? m : 0.0f) * g.cell[a];
         return e * e;
     };
     for (int dz = -1; dz <= 1; ++dz) {

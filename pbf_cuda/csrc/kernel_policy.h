@@ -30,8 +30,8 @@ PBF_HD inline bool within_radius(float r2, float support, float extra) {
 struct UniformPolicy {
     static PBF_HD float radius(const LevelRadii&, float h0, float) { return h0; }
     static PBF_HD float support(float hi, float) { return hi; }
-    static PBF_HD float W(float r2, float hi, float) { return poly6(r2, hi); }
-    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float) { return spiky_gradient(r, r2, hi); }
+    static PBF_HOT float W(float r2, float hi, float) { return poly6(r2, hi); }
+    static PBF_HOT Vec3 grad_W(Vec3 r, float r2, float hi, float) { return spiky_gradient(r, r2, hi); }
     static PBF_HD float area_scaled(float x, float, float) { return x; }
     // W(r) / W(dq h0), with 1 / W(dq h0) precomputed.
     static PBF_HD float tensile_ratio(float r2, float hi, float, float, float inv_wdq) { return poly6(r2, hi) * inv_wdq; }
@@ -53,8 +53,8 @@ struct UniformPolicy {
 struct AdaptivePolicy {
     static PBF_HD float radius(const LevelRadii& radii, float, float m) { return radii.radius_of_mass(m); }
     static PBF_HD float support(float hi, float hj) { return fmaxf(hi, hj); }
-    static PBF_HD float W(float r2, float hi, float hj) { return poly6_sym(r2, hi, hj); }
-    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient_sym(r, r2, hi, hj); }
+    static PBF_HOT float W(float r2, float hi, float hj) { return poly6_sym(r2, hi, hj); }
+    static PBF_HOT Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient_sym(r, r2, hi, hj); }
     static PBF_HD float area_scaled(float x, float h, float h0) { return x * (h * h) / (h0 * h0); }
     // W(r) / W(dq h) with the pair's own kernel (eq. 19) at dq times the pair's mean radius, so a fine pair at its
     // own spacing feels what a level-0 pair does at its spacing.
@@ -91,8 +91,8 @@ struct AdaptivePolicy {
 // kernel, bitwise as under AdaptivePolicy. Everything that is not the pair's kernel is AdaptivePolicy's.
 struct MeanRadiusPolicy : AdaptivePolicy {
     static PBF_HD float support(float hi, float hj) { return 0.5f * (hi + hj); }
-    static PBF_HD float W(float r2, float hi, float hj) { return poly6(r2, support(hi, hj)); }
-    static PBF_HD Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient(r, r2, support(hi, hj)); }
+    static PBF_HOT float W(float r2, float hi, float hj) { return poly6(r2, support(hi, hj)); }
+    static PBF_HOT Vec3 grad_W(Vec3 r, float r2, float hi, float hj) { return spiky_gradient(r, r2, support(hi, hj)); }
     // W(r) / W(dq h_ij) at the pair's mean radius: a fine pair at its own spacing feels what a level-0 pair does.
     static PBF_HD float tensile_ratio(float r2, float hi, float hj, float dq, float) {
         float h = support(hi, hj);

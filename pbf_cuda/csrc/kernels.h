@@ -9,7 +9,7 @@
 
 namespace pbf {
 
-PBF_INLINE float poly6(float r2, float h) {
+PBF_HOT float poly6(float r2, float h) {
     float h2 = h * h;
     if (r2 >= h2) return 0.0f;
     float d = h2 - r2;
@@ -18,7 +18,7 @@ PBF_INLINE float poly6(float r2, float h) {
 }
 
 // Gradient with respect to x_i of W(x_i - x_j): r = x_i - x_j.
-PBF_INLINE Vec3 spiky_gradient(Vec3 r, float r2, float h) {
+PBF_HOT Vec3 spiky_gradient(Vec3 r, float r2, float h) {
     if (r2 >= h * h || r2 <= 0.0f) return Vec3{0, 0, 0};
     float rl = sqrtf(r2);
     float d = h - rl;
@@ -55,10 +55,10 @@ inline LevelRadii make_level_radii(float h0, float m0) {
 
 // Symmetric kernels of eq. 19: the mean of the kernel at both radii. With equal radii they reduce
 // to the plain kernel (the non-adaptive path calls poly6 / spiky_gradient directly).
-PBF_INLINE float poly6_sym(float r2, float hi, float hj) {
+PBF_HOT float poly6_sym(float r2, float hi, float hj) {
     return hi == hj ? poly6(r2, hi) : 0.5f * (poly6(r2, hi) + poly6(r2, hj));
 }
-PBF_INLINE Vec3 spiky_gradient_sym(Vec3 r, float r2, float hi, float hj) {
+PBF_HOT Vec3 spiky_gradient_sym(Vec3 r, float r2, float hi, float hj) {
     if (hi == hj) return spiky_gradient(r, r2, hi);
     return 0.5f * (spiky_gradient(r, r2, hi) + spiky_gradient(r, r2, hj));
 }
