@@ -102,7 +102,8 @@ def write_synthetic_study(out, renders=True):
                ("reference-27m", "reference", "", 27.0, 1.7e6, 28.0, 0.0)]
     frame = pd.DataFrame(configs, columns=["config", "kind", "criterion", "spacing_m", "particles", "ms_per_step", "error"])
     frame = frame.assign(error_seed_spread=0.02, pbf_ms_per_particle=1e-5, e_cover=frame.error, e_volume=frame.error,
-                         e_lwp=frame.error, e_base=0.05, e_top=0.05, e_profile=0.2, speedup_at_equal_error=None)
+                         e_lwp=frame.error, e_base=0.05, e_top=0.05, e_profile=0.2, speedup_at_equal_error=None,
+                         speedup_p05=None, speedup_p95=None)
     frame.to_csv(data / "adaptive_pareto_configs.csv", index=False)
     frame.assign(seed=0, device=DEVICE, commit=COMMIT).to_csv(data / "adaptive_pareto.csv", index=False)
     (data / "adaptive_verdict.json").write_text(json.dumps({
@@ -111,7 +112,9 @@ def write_synthetic_study(out, renders=True):
         "excluded": [{"name": "paper-68m", "kind": "adaptive", "stable_seeds": 1, "seeds": 3,
                       "reasons": ["stable in 1 of 3 seeds (the verdict needs 3)"]}],
         "best": {"name": "lookahead-68m", "error": 0.15, "error_seed_spread": 0.02, "ms_per_step": 4.5,
-                 "uniform_ms_at_equal_error": 7.2, "speedup_at_equal_error": 1.6, "stable_seeds": 3, "seeds": 3},
+                 "uniform_ms_at_equal_error": 7.2, "speedup_at_equal_error": 1.6, "stable_seeds": 3, "seeds": 3,
+                 "speedup_interval": [1.3, 1.9]},
+        "resampling": {"replicates": 1000, "seeds": 3, "goal_speedup": 1.6, "no_best_share": 0.0},
         "verdict": "growing: the best adaptive variant, lookahead-68m, is 1.60x faster than uniform particles.",
         "device": DEVICE, "commit": COMMIT}))
     stress = pd.DataFrame([
@@ -243,6 +246,8 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     # adaptive-pareto: the stable-seed rule of the verdict is stated, and what it left out is drawn apart
     assert "use only configurations stable in at least 3 seeds" in sections["adaptive_pareto"]
     assert "open markers: left out of the verdict" in sections["adaptive_pareto"]
+    assert "speedup_p05 and speedup_p95: the 5th and 95th percentiles of the speed-up over 1000 resamples" in sections[
+        "adaptive_pareto"]
 
 
 def test_table1_speedups_are_computed_from_the_rows(full_report):
@@ -438,7 +443,7 @@ def test_summary_answers_first_from_the_data(full_report):
     # the adaptive speed-up is quoted with the error it holds at, never alone
     assert ("growing: best adaptive variant (lookahead-68m) 1.60x faster than uniform particles at equal error "
             "0.15 (seed spread 0.02, seed-noise floor 0.02): 4.5 against 7.2 ms per step "
-            "(stable in 3 of 3 seeds)") in summary
+            "(stable in 3 of 3 seeds), 5-95% over resampled seeds 1.30-1.90x") in summary
     # particles against grid: the final cover's seed mean (95% interval) for both
     assert "final cloud cover, particles non-adaptive 0.25 (n=5) against grid 0.25 (n=5)" in summary
     assert "Largest usable dt (density error &lt;= 1%): 2 s" in summary
