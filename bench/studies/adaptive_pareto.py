@@ -235,23 +235,39 @@ def signature(result: runs.RunResult) -> dict | None:
     return sig
 
 
-def mean_signature(sigs: list[dict]) -> dict | None:
-    """Seed mean of signatures (on the first one's times); base/top averaged where defined."""
+def aligned_signatures(sigs: list[dict | None]) -> dict | None:
+    """The signatures (None ones left out) on the first one's times and heights, one row per signature:
+    {"time", "cover": (n, T), ..., and "z", "profile": (n, Z) where every one has a profile}; None without any."""
     sigs = [s for s in sigs if s is not None]
     if not sigs:
         return None
     t = sigs[0]["time"]
     out = {"time": t}
     for key, _ in SERIES:
-        stack = np.array([_interp_nan(t, s["time"], s[key]) for s in sigs])
-        with warnings.catch_warnings():   # a time without cloud in any seed: NaN, not a warning
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out[key] = np.nanmean(stack, axis=0)
+        out[key] = np.array([_interp_nan(t, s["time"], s[key]) for s in sigs])
     if all("z" in s for s in sigs):
         z = sigs[0]["z"]
         out["z"] = z
-        out["profile"] = np.mean([np.interp(z, s["z"], s["profile"]) for s in sigs], axis=0)
+        out["profile"] = np.array([np.interp(z, s["z"], s["profile"]) for s in sigs])
     return out
+
+
+def mean_of_rows(aligned: dict, rows=slice(None)) -> dict:
+    """Seed mean of the `rows` of :func:`aligned_signatures`; base/top averaged where defined."""
+    out = {"time": aligned["time"]}
+    with warnings.catch_warnings():   # a time without cloud in any seed: NaN, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for key, _ in SERIES:
+            out[key] = np.nanmean(aligned[key][rows], axis=0)
+    if "z" in aligned:
+        out["z"], out["profile"] = aligned["z"], aligned["profile"][rows].mean(axis=0)
+    return out
+
+
+def mean_signature(sigs: list[dict]) -> dict | None:
+    """Seed mean of signatures (on the first one's times); base/top averaged where defined."""
+    aligned = aligned_signatures(sigs)
+    return None if aligned is None else mean_of_rows(aligned)
 
 
 def _interp_nan(t, ts, values):
@@ -414,44 +430,24 @@ def bootstrap_speedups(groups: dict[str, dict[int, tuple]], kinds: dict[str, str
     if ref_name is None or not seeds or not adaptive:
         return {"speedups": speedups, "best": best, "replicates": int(replicates)}
 
-    # each configuration's runs interpolated once onto its first stable seed's times and heights (as
-    # mean_signature does), so that a resample's seed mean is a mean over rows
+    # each configuration's runs aligned once (as mean_signature aligns them), so that a resample's seed mean is a
+    # mean over rows
     aligned = {}
     for config in [ref_name] + uniform + adaptive:
         runs_ = groups[config]
         order = sorted(runs_)
-        ms = np.array([runs_[s][1] for s in order], float)
         stable = [s for s in order if runs_[s][0] is not None]
-        row_of = {s: i for i, s in enumerate(stable)}
-        stacks = None
-        if stable:
-            first = runs_[stable[0]][0]
-            stacks = {"time": first["time"]}
-            for key, _ in SERIES:
-                stacks[key] = np.array([_interp_nan(first["time"], runs_[s][0]["time"], runs_[s][0][key])
-                                        for s in stable])
-            if all("z" in runs_[s][0] for s in stable):
-                stacks["z"] = first["z"]
-                stacks["profile"] = np.array([np.interp(first["z"], runs_[s][0]["z"], runs_[s][0]["profile"])
-                                              for s in stable])
-        aligned[config] = (order, ms, row_of, stacks)
+        aligned[config] = ({s: i for i, s in enumerate(order)}, np.array([runs_[s][1] for s in order], float),
+                           {s: i for i, s in enumerate(stable)}, aligned_signatures([runs_[s][0] for s in stable]))
 
     def resampled(config, draw):
-        order, ms, row_of, stacks = aligned[config]
-        index = {s: i for i, s in enumerate(order)}
+        index, ms, row_of, stacks = aligned[config]
         picked = [index[s] for s in draw if s in index]
         rows = [row_of[s] for s in draw if s in row_of]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             mean_ms = float(np.nanmean(ms[picked])) if picked else math.nan
-            if not rows:
-                return None, mean_ms
-            sig = {"time": stacks["time"]}
-            for key, _ in SERIES:
-                sig[key] = np.nanmean(stacks[key][rows], axis=0)
-        if "z" in stacks:
-            sig["z"], sig["profile"] = stacks["z"], stacks["profile"][rows].mean(axis=0)
-        return sig, mean_ms
+        return (mean_of_rows(stacks, rows) if rows else None), mean_ms
 
     for b in range(replicates):
         draw = rng.choice(seeds, size=len(seeds), replace=True)
@@ -489,10 +485,11 @@ def speedup_interval(samples: np.ndarray, goal: float = GOAL_SPEEDUP) -> dict:
 
 def analyse(entries: list[tuple[Config, int, runs.RunSpec]], results: list[runs.RunResult], scene_name: str,
             device: str, commit: str, min_stable_seeds: int | None = MIN_STABLE_SEEDS,
-            replicates: int = BOOTSTRAP_REPLICATES) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
+            replicates: int = BOOTSTRAP_REPLICATES, sigs: list[dict | None] | None = None
+            ) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
     """(per-run rows, per-configuration rows, verdict); `replicates` resamples of the seeds give each variant's
-    speed-up interval (0: none)."""
-    sigs = [signature(r) for r in results]
+    speed-up interval (0: none).  `sigs`: the results' signatures, where the caller has them already."""
+    sigs = [signature(r) for r in results] if sigs is None else sigs
     by_config: dict[Config, list[int]] = {}
     for i, (config, _, _) in enumerate(entries):
         by_config.setdefault(config, []).append(i)
@@ -766,10 +763,11 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     entries = plan(ctx, scene_name, int(seeds))
     results = ctx.run_parallel([e[2] for e in entries], f"adaptive-pareto {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
+    sigs = [signature(r) for r in results]      # each run's CSVs read once, for the analysis and the series file
     per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds,
-                                           replicates)
+                                           replicates, sigs)
     suffix = "" if scene_name == "growing" else f"_{scene_name}"
-    series = series_frame([(config.name, seed) for config, seed, _ in entries], [signature(r) for r in results])
+    series = series_frame([(config.name, seed) for config, seed, _ in entries], sigs)
     runs.write_csv(series, ctx.data / f"adaptive_pareto_series{suffix}.csv")
     runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")
     runs.write_csv(per_config, ctx.data / f"adaptive_pareto_configs{suffix}.csv")
