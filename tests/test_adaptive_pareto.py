@@ -377,3 +377,31 @@ def test_speedup_is_what_the_particles_buy_over_what_the_step_costs(exponent, co
     f = ap.speedup_factors(t_error, t_count, t_variant)
     assert f["step_cost_ratio"] == pytest.approx(overhead)
     assert f["speedup_from_particles"] / f["step_cost_ratio"] == pytest.approx(t_error / t_variant)
+
+
+@pytest.mark.parametrize("damage", ["columns", "runs", "bytes"])
+def test_from_data_refuses_a_damaged_series_file_naming_it(tmp_path, damage):
+    """A series file that is not one, lacks runs, or is not a CSV: exit code 2 naming the file; nothing written."""
+    from typer.testing import CliRunner
+    import typer
+    entries, results = _noisy_study(0.01, 4)
+    per_run, per_config, _ = ap.analyse(entries, results, "growing", "test", "abc", replicates=20)
+    data = tmp_path / "data"
+    data.mkdir()
+    per_run.to_csv(data / "adaptive_pareto.csv", index=False)
+    per_config.to_csv(data / "adaptive_pareto_configs.csv", index=False)
+    series = ap.series_frame([(c.name, seed) for c, seed, _ in entries], [ap.signature(r) for r in results])
+    path = data / "adaptive_pareto_series.csv"
+    if damage == "columns":
+        series.drop(columns="value").to_csv(path, index=False)
+    elif damage == "runs":
+        series[series["seed"] != 2].to_csv(path, index=False)
+    else:
+        path.write_bytes(b'"\xff\xfe unterminated\n\x00')
+    app = typer.Typer()
+    app.command()(ap.adaptive_pareto_command)
+    result = CliRunner().invoke(app, ["--from-data", "--resamples", "20", "--out", str(tmp_path)])
+    assert result.exit_code == 2, result.output
+    import re
+    assert "adaptive_pareto_series.csv" in re.sub(r"[\s│╭╮╰╯─]+", "", result.output)   # the error box wraps it
+    assert not (data / "adaptive_verdict.json").exists()

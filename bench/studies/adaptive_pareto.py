@@ -311,7 +311,11 @@ def series_frame(keys: list[tuple[str, int]], sigs: list[dict | None]) -> pd.Dat
 
 
 def signatures_from_series(frame: pd.DataFrame) -> dict[tuple[str, int], dict]:
-    """(config, seed) -> signature, from :func:`series_frame`'s table (the inverse of that function)."""
+    """(config, seed) -> signature, from :func:`series_frame`'s table (the inverse of that function); ValueError
+    naming the missing columns of a table that is not one."""
+    missing = [c for c in ("config", "seed", "series", "coordinate", "value") if c not in frame.columns]
+    if missing:
+        raise ValueError(f"missing column(s) {', '.join(missing)}")
     out = {}
     for (config, seed), run in frame.groupby(["config", "seed"], sort=False):
         by = {k: g.sort_values("coordinate") for k, g in run.groupby("series", sort=False)}
@@ -725,8 +729,7 @@ def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int
     for path in (runs_path, configs_path):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: missing (run `cloudpbf adaptive-pareto --scene {scene_name}` first)")
-    per_run = pd.read_csv(runs_path, float_precision="round_trip")
-    per_config = pd.read_csv(configs_path, float_precision="round_trip")
+    per_run, per_config = _read_data_csv(runs_path), _read_data_csv(configs_path)
     verdict_path = data_dir / f"adaptive_verdict{suffix}.json"
     old = json.loads(verdict_path.read_text()) if verdict_path.is_file() else {}
     device = old.get("device") or _first(per_run, "device") or "unknown"
@@ -734,8 +737,17 @@ def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int
     series_path = data_dir / f"adaptive_pareto_series{suffix}.csv"
     groups = None
     if series_path.is_file():
-        series = pd.read_csv(series_path, float_precision="round_trip")
-        groups = seed_groups(per_run, signatures_from_series(series))
+        try:
+            sigs = signatures_from_series(_read_data_csv(series_path))
+        except ValueError as exc:
+            raise ValueError(f"{series_path}: {exc}") from None
+        lacking = [f"{r.config} seed {int(r.seed)}" for r in per_run.itertuples()
+                   if _truthy(r.stable) and (str(r.config), int(r.seed)) not in sigs]
+        if lacking:
+            raise ValueError(f"{series_path}: no series for {len(lacking)} stable run(s) of {runs_path.name} "
+                             f"({', '.join(lacking[:3])}{', ...' if len(lacking) > 3 else ''}); it belongs to "
+                             "another study, or was cut short (delete it to rebuild the verdict without resampling)")
+        groups = seed_groups(per_run, sigs)
     verdict = build_verdict(per_run, per_config, scene_name, device, commit, min_stable_seeds, groups=groups,
                             replicates=replicates)
     add_verdict_columns(per_config, verdict)
@@ -743,6 +755,15 @@ def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int
         runs.atomic_write_json(verdict_path, verdict)
         runs.write_csv(per_config, configs_path)
     return verdict
+
+
+def _read_data_csv(path: Path) -> pd.DataFrame:
+    """One of the study's CSVs; ValueError naming the file when it cannot be parsed."""
+    try:
+        return pd.read_csv(path, float_precision="round_trip")
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"{path}: not a readable CSV ({why})") from None
 
 
 def _first(frame: pd.DataFrame, column: str) -> str | None:
@@ -871,7 +892,7 @@ def adaptive_pareto_command(
     if from_data:
         try:
             verdict = rebuild_verdict(Path(out) / "data", scene, min_stable_seeds, replicates=resamples)
-        except FileNotFoundError as exc:
+        except (FileNotFoundError, ValueError) as exc:
             raise click.UsageError(str(exc)) from None
         _echo_verdict(verdict)
         return
