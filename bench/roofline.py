@@ -57,9 +57,12 @@ def step_passes(scene: Scene) -> list[tuple[str, int, int]]:
             passes.append(("gradient correction L_i", FLOAT4, 6 * FLOAT))
         passes += [("J^T mu_prev", FLOAT4 + FLOAT, FLOAT4),
                    ("J v, CG start", 3 * FLOAT4, FLOAT4 + 3 * FLOAT)]
-        for _ in range(p.divergence_iterations):
-            passes += [("CG: g = M^-1 J^T p", FLOAT4 + FLOAT, FLOAT4),
-                       ("CG: q = J g, update", 3 * FLOAT4 + 3 * FLOAT, FLOAT4 + 3 * FLOAT)]
+        for k in range(p.divergence_iterations):
+            passes.append(("CG: g = M^-1 J^T p", FLOAT4 + FLOAT, FLOAT4))
+            if k + 1 < p.divergence_iterations:
+                passes.append(("CG: q = J g, update", 3 * FLOAT4 + 3 * FLOAT, FLOAT4 + 3 * FLOAT))
+            else:   # the last step needs no residual: p.Ap = sum m |g|^2, then v and mu
+                passes.append(("CG: last update", 3 * FLOAT4 + 2 * FLOAT, FLOAT4 + FLOAT))
     passes.append(("commit x = x*", FLOAT4, FLOAT4))
     return passes
 

@@ -144,11 +144,16 @@ void parallel_for(std::size_t n, const F& f) {
     for_each_kernel<<<unsigned((n + block - 1) / block), block>>>(uint32_t(n), f);
 }
 #else
+// Chunks of 512 items handed out as threads come free (OpenMP's dynamic schedule). Thrust's for_each splits the
+// range into one equal part per thread; a particle's cost follows its neighbourhood (a full one in the bulk, half
+// of one at a free surface or a wall), so with 2 threads one waited for the other at the end of every pass.
+constexpr long long kCpuChunk = 512;
 template <class F>
 void parallel_for(std::size_t n, const F& f) {
     if (n == 0) return;
-    thrust::for_each(exec(), thrust::counting_iterator<uint32_t>(0), thrust::counting_iterator<uint32_t>(uint32_t(n)),
-                     f);
+    const long long m = (long long)n;
+#pragma omp parallel for schedule(dynamic, kCpuChunk)
+    for (long long i = 0; i < m; ++i) f(uint32_t(i));
 }
 #endif
 

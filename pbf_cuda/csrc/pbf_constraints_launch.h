@@ -74,6 +74,20 @@ struct CgDirectionDots {
         return Double2{double(p[i]) * double(q[i]), double(p[i]) * p[i] * diag[i]};
     }
 };
+// (p . A p, p . D p) without q: p . A p = p . J M^-1 J^T p = (M g) . g = sum_i m_i |g_i|^2 for g = M^-1 J^T p
+// (ApplyJT is the exact transpose of ApplyJ), so the last iteration, whose q would only update a residual no one
+// reads, needs no ApplyJ pass.
+struct CgDirectionEnergy {
+    const Float4* pos;   // w: mass
+    const Float4* g;
+    const float* p;
+    const float* diag;
+    PBF_HD Double2 operator()(uint32_t i) const {
+        const Float4 gi = g[i];
+        const double g2 = double(gi.x) * gi.x + double(gi.y) * gi.y + double(gi.z) * gi.z;
+        return Double2{double(pos[i].w) * g2, double(p[i]) * p[i] * diag[i]};
+    }
+};
 // (r . D^-1 r, r . r).
 struct CgResidualDots {
     const float* r;
@@ -116,7 +130,7 @@ struct CgNextDirection {
 struct CgUpdate {
     const CgState* s;
     const Float4* g;
-    const float* q;
+    const float* q;      // nullptr: the last iteration, the residual is not updated
     const float* p;
     Float4* v;
     float* r;
@@ -126,7 +140,7 @@ struct CgUpdate {
         const float alpha = s->alpha;
         Float4 a = v[i], b = g[i];
         v[i] = Float4{a.x + alpha * b.x, a.y + alpha * b.y, a.z + alpha * b.z, a.w};
-        r[i] -= alpha * q[i];
+        if (q) r[i] -= alpha * q[i];
         mu[i] += alpha * p[i];
     }
 };
@@ -251,12 +265,12 @@ inline bool viscosity_vorticity_active(const Params& p) {
 
 // Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
 // (NarrowNeighbors, neighbor_list.h), where enough neighbour passes follow at x* to pay for the narrowing pass:
-// the velocity projection's 2 (divergence_iterations + 1), XSPH / viscosity, vorticity confinement, smoothing.
+// the velocity projection's 2 divergence_iterations + 1, XSPH / viscosity, vorticity confinement, smoothing.
 template <class Policy>
 void narrow_neighbor_lists(SolverData& d) {
     if (!d.lists_ready) return;
     const Params& p = d.p;
-    const int passes = (p.velocity_projection ? 2 * (p.divergence_iterations + 1) : 0) +
+    const int passes = (p.velocity_projection ? 2 * p.divergence_iterations + 1 : 0) +
                        (viscosity_vorticity_active(p) ? 1 : 0) + (p.vorticity > 0.0f ? 1 : 0) + (d.smoothing ? 1 : 0);
     if (passes < 3) return;
     parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, raw(d.nbr_count),
@@ -325,13 +339,18 @@ void solve_divergence(SolverData& d, const CellRanges& bnd) {
     reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);   // (r . z, r . r)
     run_once(CgBegin{s, tol2});
     for (int it = 0; it < d.p.divergence_iterations; ++it) {
+        const bool last = it + 1 == d.p.divergence_iterations;
         parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
-        parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
-        reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+        if (!last) {
+            parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
+            reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+        } else {   // p . A p = sum m |g|^2: the residual after the last step is not needed
+            reduce_into(n, CgDirectionEnergy{fl.pos, g, p, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+        }
         run_once(CgStepSize{s});
         // v += alpha g; r -= alpha q; mu += alpha p
-        parallel_for(n, CgUpdate{s, g, q, p, v, r, mu});
-        if (it + 1 == d.p.divergence_iterations) break;
+        parallel_for(n, CgUpdate{s, g, last ? nullptr : q, p, v, r, mu});
+        if (last) break;
         reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
         run_once(CgNextDirection{s, tol2});
         parallel_for(n, CgDirection{s, r, diag, p});                                  // p = z + beta p
