@@ -581,8 +581,10 @@ def _peers(inp: Inputs, sec: Section, env: dict | None) -> None:
         _missing(sec, "cpu_peer.csv (SPlisHSPlasH's PBF dam break against cloudpbf's: cloudpbf peers)", "peers", inp.out)
         return
     sec.add("text", "SPlisHSPlasH's DamBreakModel with PBF (4 iterations, dt 0.002 s) and cloudpbf's dam break on the "
-                    "same box, water cube and spacing, timed alternately in one run; the faster repeat of each. "
-                    "Fluid particle-steps per second: more is faster.")
+                    "same box, water cube and spacing, timed alternately in one run; per run the faster repeat of each "
+                    "and cloudpbf's ratio to SPlisHSPlasH of the faster repeats and of the means. A shared host's "
+                    "speed drifts between runs: compare within a row. Fluid particle-steps per second: more is "
+                    "faster.")
     from bench.studies.peers import best_rates
     wide = best_rates(df)
     wide["threads"] = wide["threads"].map(lambda t: "GPU" if int(t) == 0 else str(int(t)))

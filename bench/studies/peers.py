@@ -11,8 +11,9 @@ machine libGLdispatch.so.0 is preloaded.  Where it is missing the command says s
 cloudpbf: the ``dam_break`` scene with the same box, cube and spacing (``--spacing``, 0.022 m), dt and
 iterations, 2 warm-up steps then 20 timed, on the CPU at each thread count and on the GPU where one exists.  The
 tools alternate ``--repeats`` times at each thread count (OMP_NUM_THREADS); each CSV row is one timing:
-threads (0: the GPU), tool, fluid_particles, ms_per_step, particle_steps_per_s, device, commit.  Not part of the
-demo.
+threads (0: the GPU), tool, fluid_particles, ms_per_step, particle_steps_per_s, device, commit, run (the UTC
+minute the run started: the repeats of one run are compared with each other, never with another run's, because a
+shared host's speed drifts between runs).  Not part of the demo.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -119,6 +121,7 @@ def run_peers(threads: list[int], repeats: int = 2, splish_python: str | None = 
     gl = next((p for p in ("/lib/x86_64-linux-gnu/libGLdispatch.so.0", "/usr/lib/x86_64-linux-gnu/libGLdispatch.so.0")
                if Path(p).exists()), None)
     cpu = f"{cpu_name()}, {os.cpu_count()} cores"
+    started = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%MZ")   # the run's label: repeats of one run compare
     rows = []
 
     def timed(tool, n_threads, device, cmd, env, steps=None):
@@ -142,17 +145,28 @@ def run_peers(threads: list[int], repeats: int = 2, splish_python: str | None = 
                   [sys.executable, str(work / "cloudpbf.py"), str(spacing), "cuda"], dict(os.environ))
     frame = pd.DataFrame(rows)
     frame["commit"] = commit()
+    frame["run"] = started
     return frame
 
 
 def best_rates(frame):
-    """Each tool's fastest repeat (fluid particle-steps per second) per thread count and device, one column per
-    tool, with cloudpbf's ratio to SPlisHSPlasH where both ran."""
-    best = frame.groupby(["threads", "tool", "device"], as_index=False)["particle_steps_per_s"].max()
-    wide = best.pivot_table(index=["threads", "device"], columns="tool", values="particle_steps_per_s").reset_index()
+    """Each tool's fastest repeat (fluid particle-steps per second) per run (its commit and start time, where the CSV
+    has them: rows of several runs are never mixed), device and thread count, one column per tool, with cloudpbf's ratio to
+    SPlisHSPlasH where both ran: of the fastest repeats, and of the means over the repeats (RATIO + " (means)"),
+    which a single fast or slow repeat of either tool moves less."""
+    frame = frame.copy()
+    keys = ["threads", "device"]
+    for label in ("run", "commit"):
+        if label in frame:
+            frame[label] = frame[label].fillna("").astype(str)
+            keys = [label] + keys
+    rates = frame.groupby(keys + ["tool"], as_index=False)["particle_steps_per_s"].agg(best="max", mean="mean")
+    wide = rates.pivot_table(index=keys, columns="tool", values="best").reset_index()
     wide.columns.name = None
     if SPLISH in wide and "cloudpbf" in wide:
         wide[RATIO] = wide["cloudpbf"] / wide[SPLISH]
+        means = rates.pivot_table(index=keys, columns="tool", values="mean").reset_index()
+        wide[RATIO + " (means)"] = (means["cloudpbf"] / means[SPLISH]).to_numpy()
     return wide
 
 
