@@ -363,15 +363,21 @@ def uniform_front(uniform: pd.DataFrame) -> pd.DataFrame:
     return pareto_front(uniform, "ms_per_step", "error").sort_values("error")
 
 
+def _loglog_within(x: float, xs, ys) -> float:
+    """y at `x`, interpolated in log x and log y between the points (xs, ys); NaN with fewer than two points or
+    outside their range of x."""
+    if len(xs) < 2 or not np.isfinite(x) or x <= 0:
+        return math.nan
+    lx, ly = np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float))
+    if not lx.min() <= math.log(x) <= lx.max():
+        return math.nan
+    order = np.argsort(lx)
+    return float(np.exp(np.interp(math.log(x), lx[order], ly[order])))
+
+
 def time_at_error(front: pd.DataFrame, error: float) -> float:
     """ms/step of the uniform front at `error`, log-log interpolated; NaN outside the front's error range."""
-    if len(front) < 2 or not np.isfinite(error):
-        return math.nan
-    e, t = np.log(front["error"].to_numpy(float)), np.log(front["ms_per_step"].to_numpy(float))
-    if not e.min() <= math.log(error) <= e.max():
-        return math.nan
-    order = np.argsort(e)
-    return float(np.exp(np.interp(math.log(error), e[order], t[order])))
+    return _loglog_within(error, front["error"].to_numpy(float), front["ms_per_step"].to_numpy(float))
 
 
 def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
@@ -386,13 +392,8 @@ def pbf_cost_at_count(uniform: pd.DataFrame, particles: float) -> float:
 def uniform_time_at_count(uniform: pd.DataFrame, particles: float) -> float:
     """ms/step of a uniform run with `particles` particles, log-log interpolated between the uniform runs; NaN
     outside their range of counts."""
-    u = uniform.dropna(subset=["ms_per_step", "particles"]).sort_values("particles")
-    if len(u) < 2 or not np.isfinite(particles) or particles <= 0:
-        return math.nan
-    n, t = np.log(u["particles"].to_numpy(float)), np.log(u["ms_per_step"].to_numpy(float))
-    if not n.min() <= math.log(particles) <= n.max():
-        return math.nan
-    return float(np.exp(np.interp(math.log(particles), n, t)))
+    u = uniform.dropna(subset=["ms_per_step", "particles"])
+    return _loglog_within(particles, u["particles"].to_numpy(float), u["ms_per_step"].to_numpy(float))
 
 
 def speedup_factors(t_at_error: float, t_at_count: float, ms_per_step: float) -> dict:
