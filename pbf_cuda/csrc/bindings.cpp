@@ -151,6 +151,7 @@ public:
         d["neighbor_lists"] = s.neighbor_lists;
         d["neighbor_candidates"] = s.neighbor_candidates;
         d["neighbor_row_width"] = s.neighbor_row_width;
+        d["wall_candidates"] = s.wall_candidates;
         d["density_excess_mean"] = s.density_excess_mean;
         d["density_deficit_mean"] = s.density_deficit_mean;
         d["max_speed"] = s.max_speed;

@@ -127,6 +127,42 @@ struct CellRanges {
     }
 };
 
+// ---- the walls' neighbourhoods, one table per run -------------------------------------------------------
+// Boundary particles never move, and every fluid particle of a cell sees the boundary particles of the same 27
+// cells. So each cell's boundary candidates are gathered once, when the walls are set (boundaries_launch.h):
+// the positions (w = mass) of the boundary particles within h0 of the cell's box, in the order the 27-cell
+// search visits them, one contiguous segment per cell. A fluid particle next to a wall then reads one segment
+// instead of searching 27 cell ranges: on the GPU each of those ranges cost a dependent load, and the warps
+// holding a wall's particles set the length of every constraint pass (a 104k-particle `growing` step took 1.7x
+// as long with the walls' search as without it; docs/benchmarks.md).
+struct WallNeighbourhoods {
+    const uint32_t* offset = nullptr;   // per cell c: its segment is [offset[c], offset[c + 1]); nullptr: no walls
+    const Float4* pos = nullptr;        // the segments' boundary positions (w = mass)
+};
+
+// Calls f(r, r2, m_b) for every boundary particle b with |r| < r_max, r = x_i - x_b (minimum image), in the
+// 27-cell search's order. r_max <= h0, the reach the table was gathered for. Positions are read kListBatch at a
+// time (kernel_policy.h), so that a thread has several loads in flight.
+template <uint32_t kBatch, class F>
+PBF_HD inline void for_each_wall_neighbor(const GridGeometry& g, const WallNeighbourhoods& walls, Vec3 xi,
+                                          float r_max, F&& f) {
+    const uint32_t c = cell_key(g, xi);
+    const uint32_t e = walls.offset[c + 1];
+    const float r2max = r_max * r_max;
+    auto visit = [&](const Float4& pb) {
+        Vec3 r = min_image(g, Vec3{xi.x - pb.x, xi.y - pb.y, xi.z - pb.z});
+        float r2 = dot(r, r);
+        if (r2 < r2max) f(r, r2, pb.w);
+    };
+    uint32_t k = walls.offset[c];
+    for (; k + kBatch <= e; k += kBatch) {
+        Float4 pb[kBatch];
+        for (uint32_t b = 0; b < kBatch; ++b) pb[b] = walls.pos[k + b];
+        for (uint32_t b = 0; b < kBatch; ++b) visit(pb[b]);
+    }
+    for (; k < e; ++k) visit(walls.pos[k]);
+}
+
 // ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------
 // A cell of side >= h0 (the level-0 radius) is split into 2 x 2 x 2 sub-cells of side >= h0 / 2, the finest
 // radius of three levels (h_3 = h0 / 2). Particles are sorted by the nested key cell * 8 + sub, so each

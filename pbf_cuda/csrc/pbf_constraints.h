@@ -65,15 +65,13 @@ struct Sym3 {
 // ---- the neighbour sums the four constraint kernels share ---------------------------------------
 // The density constraint's neighbourhood of fluid particle i at xi: on_fluid(j, r, r2, m_j, h_j) for every fluid
 // neighbour (i itself included, r2 = 0), then on_wall(r, r2, m_b) for every boundary particle within h0 when i is
-// near a wall (boundary particles have the level-0 radius h0).
+// near a wall (boundary particles have the level-0 radius h0), from the walls' table (grid.h).
 template <class Policy, class Fluid, class Wall>
 PBF_HD inline void for_each_constraint_neighbor(const GridGeometry& grid, const CellRanges& fluid,
-                                                const CellRanges& boundary, const LevelRadii& radii, float h0,
+                                                const WallNeighbourhoods& walls, const LevelRadii& radii, float h0,
                                                 uint32_t i, Vec3 xi, Fluid&& on_fluid, Wall&& on_wall) {
     for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, on_fluid);
-    if (boundary.start && near_wall(grid, xi, h0)) {
-        for_each_neighbor(grid, boundary, xi, h0, [&](uint32_t b, Vec3 r, float r2) { on_wall(r, r2, boundary.pos[b].w); });
-    }
+    if (walls.offset && near_wall(grid, xi, h0)) for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, on_wall);
 }
 
 // Row i of the constraint Jacobian J = grad C, summed over the neighbourhood: grad_i C_i and the Jacobi diagonal
@@ -95,11 +93,11 @@ struct JacobianRow {
 // fluid pair's weight a_i m_j / m_i + a_j (+ the tensile term): the position correction (Macklin eq. 12-14,
 // a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum.
 template <class Policy, class Coef>
-PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid, const CellRanges& boundary,
-                                  const LevelRadii& radii, float h0, uint32_t i, Vec3 xi, float hi, float ai, float mi,
+PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid,
+                                  const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i, Vec3 xi, float hi, float ai, float mi,
                                   Coef&& coef) {
     Vec3 sum{0, 0, 0};
-    for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, h0, i, xi,
+    for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, h0, i, xi,
         [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
             float c = coef(j, r2, mj, hj);
@@ -114,7 +112,7 @@ template <class Policy>
 struct DensityLambda {
     GridGeometry grid;
     CellRanges fluid;
-    CellRanges boundary;  // boundary.start == nullptr: no walls
+    WallNeighbourhoods walls;  // walls.offset == nullptr: no walls
     LevelRadii radii;
     ConstraintParams cp;
     float* lambda;
@@ -126,7 +124,7 @@ struct DensityLambda {
         float hi = Policy::radius(radii, cp.h0, mi);
         float rho = 0.0f;
         JacobianRow row;
-        for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+        for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
             [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
                 rho += mj * Policy::W(r2, hi, hj);
                 if (j != i) row.add_fluid(Policy::grad_W(r, r2, hi, hj), mj, cp.inv_rest_density);
@@ -150,7 +148,7 @@ template <class Policy>
 struct GradientCorrection {
     GridGeometry grid;
     CellRanges fluid;
-    CellRanges boundary;
+    WallNeighbourhoods walls;
     LevelRadii radii;
     ConstraintParams cp;
     float* correction;
@@ -164,7 +162,7 @@ struct GradientCorrection {
             b[0] += d.x * gw.x; b[1] += 0.5f * (d.x * gw.y + d.y * gw.x); b[2] += 0.5f * (d.x * gw.z + d.z * gw.x);
             b[3] += d.y * gw.y; b[4] += 0.5f * (d.y * gw.z + d.z * gw.y); b[5] += d.z * gw.z;
         };
-        for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+        for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
             [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
                 if (j != i) add(r, Policy::grad_W(r, r2, hi, hj), mj * cp.inv_rest_density);
             },
@@ -192,7 +190,7 @@ template <class Policy, bool Corrected = false>
 struct ApplyJT {
     GridGeometry grid;
     CellRanges fluid;
-    CellRanges boundary;
+    WallNeighbourhoods walls;
     LevelRadii radii;
     ConstraintParams cp;
     const float* p;
@@ -207,13 +205,13 @@ struct ApplyJT {
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = p[i];
         if constexpr (!Corrected) {
-            Vec3 dv = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
+            Vec3 dv = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi,
                                              [&](uint32_t j, float, float mj, float) { return li * mj / mi + p[j]; });
             g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
         } else {
             // (M^-1 J^T p)_i rho0 = L_i (sum_j p_i m_j / m_i grad W_ij + walls) + sum_j p_j L_j grad W_ij
             Vec3 own{0, 0, 0}, others{0, 0, 0};
-            for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+            for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
                 [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
                     if (j == i) return;
                     Vec3 gw = Policy::grad_W(r, r2, hi, hj);
@@ -231,7 +229,7 @@ template <class Policy, bool Corrected = false>
 struct ApplyJ {
     GridGeometry grid;
     CellRanges fluid;
-    CellRanges boundary;
+    WallNeighbourhoods walls;
     LevelRadii radii;
     ConstraintParams cp;
     const Float4* u;
@@ -250,7 +248,7 @@ struct ApplyJ {
         JacobianRow row;
         Sym3 li{1, 0, 0, 1, 0, 1};
         if constexpr (Corrected) li = Sym3::load(correction, i);
-        for_each_constraint_neighbor<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi,
+        for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
             [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
                 if (j == i) return;
                 Vec3 gw = Policy::grad_W(r, r2, hi, hj);
@@ -275,7 +273,7 @@ template <class Policy>
 struct PositionCorrection {
     GridGeometry grid;
     CellRanges fluid;
-    CellRanges boundary;
+    WallNeighbourhoods walls;
     LevelRadii radii;
     ConstraintParams cp;
     const float* lambda;
@@ -286,7 +284,7 @@ struct PositionCorrection {
         float mi = pi.w;
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = lambda[i];
-        Vec3 dp = sum_transposed<Policy>(grid, fluid, boundary, radii, cp.h0, i, xi, hi, li, mi,
+        Vec3 dp = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi,
                                          [&](uint32_t j, float r2, float mj, float hj) {
             float s = 0.0f;
             // s_corr = -k (W(r) / W(dq h))^n: between level-0 particles as in a uniform run, on a pair with a

@@ -233,7 +233,7 @@ struct VerticalShift {
 // Density constraint iterations on the predicted positions (eq. 1-4, 18). With pbf.shift_keeps_anomaly the
 // vertical shift they give each particle is kept (d.shift_y) for the cloud dynamics (thermodynamics.h).
 template <class Policy>
-void solve_density(SolverData& d, const CellRanges& walls) {
+void solve_density(SolverData& d, const WallNeighbourhoods& walls) {
     const bool keep_shift = !d.shift_y.empty();
     if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
     // pbf.remove_shift_drift: the solve's net vertical shift sum m dy / sum m is the closed column's rigid mode
@@ -308,7 +308,7 @@ void viscosity_vorticity(SolverData& d) {
 // d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
 // (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
-void solve_divergence(SolverData& d, const CellRanges& bnd) {
+void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd) {
     CellRanges fl = d.fluid_ranges(d.pred);
     const std::size_t n = d.n;
     const GridGeometry& grid = d.grid;
@@ -368,7 +368,7 @@ inline void remove_column_drift(SolverData& d) {
 
 // The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.
 template <class Policy>
-void project_velocity(SolverData& d, const CellRanges& walls) {
+void project_velocity(SolverData& d, const WallNeighbourhoods& walls) {
     if (!d.p.velocity_projection) return;
     d.clock.begin(kPhaseSolver);
     const Vec3 gravity = gravity_of(d.p);

@@ -63,6 +63,7 @@ struct StepStats {
     bool neighbor_lists = false;        // pbf.neighbor_list in use (false once given up: grid_launch.h)
     unsigned long long neighbor_candidates = 0;  // entries of the last step's lists (0 without lists)
     unsigned neighbor_row_width = 0;    // the lists' row width W (slots per particle; 0 without lists)
+    unsigned long long wall_candidates = 0;   // entries of the walls' table (grid.h, WallNeighbourhoods)
     double density_error_mean = 0.0;
     double density_error_max = 0.0;
     double density_excess_mean = 0.0;   // mean max(rho/rho0 - 1, 0): compression

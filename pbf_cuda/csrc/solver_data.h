@@ -57,10 +57,12 @@ struct SolverData {
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
     dvec<uint32_t> split_count, split_slot, split_candidates, merge_partner;
-    // Boundary particles (walls), sorted by cell once: they never move.
+    // Boundary particles (walls), sorted by cell once: they never move. Each cell's boundary candidates, gathered
+    // once (grid.h, WallNeighbourhoods; boundaries_launch.h).
     dvec<Float4> bpos;
     dvec<float> btemperature, bvapor, bcloud;
-    dvec<uint32_t> bstart, bend;
+    dvec<uint32_t> wall_offset;
+    dvec<Float4> wall_pos;
 
     dvec<StepSums> step_sums;                // this step's sums for the host (one record, diagnostics.h)
 
@@ -83,10 +85,10 @@ struct SolverData {
         }
         return r;
     }
-    // The boundary particles (start == nullptr: no walls).
-    CellRanges boundary_ranges() const {
-        if (nb == 0) return CellRanges{nullptr, nullptr, nullptr};
-        return CellRanges{raw(bpos), raw(bstart), raw(bend)};
+    // The walls' neighbourhoods (offset == nullptr: no walls).
+    WallNeighbourhoods wall_neighbourhoods() const {
+        if (nb == 0) return WallNeighbourhoods{};
+        return WallNeighbourhoods{raw(wall_offset), raw(wall_pos)};
     }
 
     // Per-particle arrays of cap slots; the optional ones only where their phase runs.

@@ -61,7 +61,7 @@ public:
         build_neighbor_lists<Policy>(d);             // each particle's candidates, once per step
         d.clock.end(kPhaseNeighbors);
         d.clock.begin(kPhaseSolver);
-        const CellRanges walls = d.boundary_ranges();
+        const WallNeighbourhoods walls = d.wall_neighbourhoods();
         solve_density<Policy>(d, walls);             // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
         narrow_neighbor_lists<Policy>(d);            // x* is final: the lists keep the pairs within support
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
@@ -223,6 +223,7 @@ public:
         s.neighbor_lists = d.p.neighbor_list && !d.lists_given_up;
         s.neighbor_candidates = s.neighbor_lists && d.step > 0 ? d.list_entries : 0;
         s.neighbor_row_width = s.neighbor_lists && d.step > 0 ? d.nbr_width : 0;
+        s.wall_candidates = d.wall_pos.size();
         if (d.n > 0) {
             Reduced r = reduce_checks(d);
             s.density_error_mean = r.err_sum / double(d.n);
