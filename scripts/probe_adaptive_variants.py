@@ -34,7 +34,7 @@ custom = []
 for text in args.variant:
     name, criterion, spacing, level, scale, *rest = text.split(":", 5)
     over = tuple(sorted(json.loads(rest[0]).items())) if rest else ()
-    custom.append(ap.Config(name, "adaptive", float(spacing) * factor, criterion, int(level), float(scale), over))
+    custom.append(ap.Config(name, "adaptive", float(spacing) * factor, criterion, int(level), float(scale), overrides=over))
 configs = [c for c in ap.configs(args.scale) if c.kind != "adaptive"] + custom
 ctx = StudyContext(out=args.out or Path("/tmp/probe_adaptive_variants"), scale=SCALES[args.scale],
                    runs_root=args.runs_root or runs.default_root(), backend=args.backend, quiet=False,
