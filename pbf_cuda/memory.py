@@ -23,8 +23,10 @@ __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memor
 FLOAT4, FLOAT, UINT = 16, 4, 4
 SORT_SCRATCH_BYTES = 8           # the radix sort's second key and value buffers (uint32 each)
 ADAPTIVE_BYTES_PER_SLOT = 64     # flags, shape energy, split/merge bookkeeping, with room for the sub-cells
-BYTES_PER_BOUNDARY = 48          # float4 position, three floats, sort keys
-BYTES_PER_CELL = 16              # fluid and boundary cell start/end (uint32 each)
+BYTES_PER_BOUNDARY = 256         # float4 position, three floats, and the walls' table: each boundary particle
+                                 # copied (float4) into the segments of the 11-14 cells that reach it
+                                 # (stats()["wall_candidates"]: growing, dam_break, cycling)
+BYTES_PER_CELL = 12              # fluid cell start/end and the walls' table offset (uint32 each)
 HOST_BYTES_PER_PARTICLE = 160    # numpy arrays while the initial state is built (float64 lattices)
 HOST_BYTES_PER_BOUNDARY = 96
 LIST_ROW_WIDTH = 1.4             # the lists' row width over the mean candidates of a uniform run: the longest
