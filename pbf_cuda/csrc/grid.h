@@ -142,7 +142,9 @@ struct WallNeighbourhoods {
 
 // Calls f(r, r2, m_b) for every boundary particle b with |r| < r_max, r = x_i - x_b (minimum image), in the
 // 27-cell search's order. r_max <= h0, the reach the table was gathered for. Positions are read kListBatch at a
-// time (kernel_policy.h), so that a thread has several loads in flight.
+// time (kernel_policy.h), so that a thread has several loads in flight. For a predicted position more than a
+// cell beyond a wall (clamped into the outer cells by cell_coord) the table, like the 27-cell search, can miss
+// boundary particles that lie beyond the grid as well (the dam break's walls reach 1.25 h0 deep).
 template <uint32_t kBatch, class F>
 PBF_HD inline void for_each_wall_neighbor(const GridGeometry& g, const WallNeighbourhoods& walls, Vec3 xi,
                                           float r_max, F&& f) {
