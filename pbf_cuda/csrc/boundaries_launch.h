@@ -43,24 +43,32 @@ inline void gather_wall_neighbourhoods(const GridGeometry& g, float h0, const st
         if (i == 0 || keys[i - 1] != keys[i]) start[keys[i]] = uint32_t(i);
         if (i + 1 == n || keys[i + 1] != keys[i]) end[keys[i]] = uint32_t(i + 1);
     }
-    // The cell at offset d along axis a of coordinate c, or -1 past a wall.
-    auto step = [&](int a, int c, int d) {
-        int v = c + d;
-        if (g.periodic[a]) return v < 0 ? v + g.dims[a] : (v >= g.dims[a] ? v - g.dims[a] : v);
-        return (v < 0 || v >= g.dims[a]) ? -1 : v;
-    };
-    std::vector<uint8_t> near(cells, 0u);   // cells with a boundary particle among their 27
-    for (uint32_t b = 0; b < cells; ++b) {
-        if (start[b] == end[b]) continue;
+    // f(b) for each of the 27 cells around `cell` (wrapped on periodic axes, none past a wall), in the order
+    // for_each_in_block visits them: z, then y, then x offsets.
+    auto for_each_block_cell = [&](uint32_t cell, auto&& f) {
         uint32_t c[3];
-        cell_coords(g, b, c);
-        for (int dz = -1; dz <= 1; ++dz)
-            for (int dy = -1; dy <= 1; ++dy)
+        cell_coords(g, cell, c);
+        auto step = [&](int a, int d) {
+            int v = int(c[a]) + d;
+            if (g.periodic[a]) return v < 0 ? v + g.dims[a] : (v >= g.dims[a] ? v - g.dims[a] : v);
+            return (v < 0 || v >= g.dims[a]) ? -1 : v;
+        };
+        for (int dz = -1; dz <= 1; ++dz) {
+            int z = step(2, dz);
+            if (z < 0) continue;
+            for (int dy = -1; dy <= 1; ++dy) {
+                int y = step(1, dy);
+                if (y < 0) continue;
                 for (int dx = -1; dx <= 1; ++dx) {
-                    int x = step(0, int(c[0]), dx), y = step(1, int(c[1]), dy), z = step(2, int(c[2]), dz);
-                    if (x >= 0 && y >= 0 && z >= 0) near[cell_index(g, x, y, z)] = 1u;
+                    int x = step(0, dx);
+                    if (x >= 0) f(cell_index(g, x, y, z));
                 }
-    }
+            }
+        }
+    };
+    std::vector<uint8_t> near(cells, 0u);   // cells with a boundary particle among their 27 (a symmetric relation)
+    for (uint32_t b = 0; b < cells; ++b)
+        if (start[b] != end[b]) for_each_block_cell(b, [&](uint32_t c) { near[c] = 1u; });
     const double reach = double(h0) * 1.001;
     offset.assign(std::size_t(cells) + 1, 0u);
     table.clear();
@@ -82,21 +90,10 @@ inline void gather_wall_neighbourhoods(const GridGeometry& g, float h0, const st
             }
             return d2;
         };
-        for (int dz = -1; dz <= 1; ++dz) {
-            int z = step(2, int(c[2]), dz);
-            if (z < 0) continue;
-            for (int dy = -1; dy <= 1; ++dy) {
-                int y = step(1, int(c[1]), dy);
-                if (y < 0) continue;
-                for (int dx = -1; dx <= 1; ++dx) {
-                    int x = step(0, int(c[0]), dx);
-                    if (x < 0) continue;
-                    uint32_t b = cell_index(g, x, y, z);
-                    for (uint32_t j = start[b]; j < end[b]; ++j)
-                        if (box_distance2(pos[j]) < reach * reach) table.push_back(pos[j]);
-                }
-            }
-        }
+        for_each_block_cell(cell, [&](uint32_t b) {
+            for (uint32_t j = start[b]; j < end[b]; ++j)
+                if (box_distance2(pos[j]) < reach * reach) table.push_back(pos[j]);
+        });
     }
     offset[cells] = uint32_t(table.size());
 }

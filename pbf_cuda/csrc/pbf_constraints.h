@@ -94,8 +94,8 @@ struct JacobianRow {
 // a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum.
 template <class Policy, class Coef>
 PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid,
-                                  const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i, Vec3 xi, float hi, float ai, float mi,
-                                  Coef&& coef) {
+                                  const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i,
+                                  Vec3 xi, float hi, float ai, float mi, Coef&& coef) {
     Vec3 sum{0, 0, 0};
     for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, h0, i, xi,
         [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
