@@ -283,39 +283,49 @@ struct MergePass {
         int az = int(t / (uint32_t(per_axis[0]) * uint32_t(per_axis[1])));
         int c[3] = {offset[0] + 3 * ax, offset[1] + 3 * ay, offset[2] + 3 * az};
         uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
-        for (uint32_t i = fluid.start[cell]; i < fluid.end[cell]; ++i) {
-            // Every lane reads the same values here: the only writes are lane 0's, fenced by sync().
-            uint8_t fi = flags[i];
-            if (!(fi & kMergeCandidate) || (fi & (kDead | kMergedNow))) continue;
-            Float4 pi = pos[i];
-            Vec3 xi = xyz(pi);
-            int l = radii.level_of_mass(pi.w);
-            uint32_t best = partner[i];
-            if (best == 0xffffffffu || (flags[best] & (kDead | kMergedNow))) continue;
-            Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
-            Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
-            float r_min = ap.min_distance * radii.h[l - 1];
-            bool blocked = false;
-            for_each_in_block_strided(grid, fluid, c, mid, r_min, radii.moved_slack(), team.rank(), Team::kSize,
-                                      [&](uint32_t k, Vec3, float) {
-                                          if (k == i || k == best || (flags[k] & kDead)) return;
-                                          blocked = true;
-                                      });
-            if (team.any(blocked)) continue;
-            if (team.rank() == 0) {
-                uint32_t j = best;
-                Float4 vi = vel[i], vj = vel[j];
-                pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
-                vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
-                if (temperature) {
-                    temperature[i] = 0.5f * (temperature[i] + temperature[j]);
-                    vapor[i] = 0.5f * (vapor[i] + vapor[j]);
-                    cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+        const uint32_t end = fluid.end[cell];
+        // The cell's particles in chunks of the team's size: one vote finds the chunk's merge candidates with a
+        // partner (neither the candidate mark nor the partner changes during the passes), then those are taken one
+        // at a time in index order, their flags read afresh, exactly as a walk over every particle would.
+        for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
+            const uint32_t mine = chunk + team.rank();
+            uint32_t pending = team.ballot(mine < end && (flags[mine] & kMergeCandidate) &&
+                                           partner[mine] != 0xffffffffu);
+            for (; pending; pending &= pending - 1u) {
+                const uint32_t i = chunk + lowest_set_bit(pending);
+                // Every lane reads the same values here: the only writes are lane 0's, fenced by sync().
+                uint8_t fi = flags[i];
+                if (fi & (kDead | kMergedNow)) continue;
+                Float4 pi = pos[i];
+                Vec3 xi = xyz(pi);
+                int l = radii.level_of_mass(pi.w);
+                uint32_t best = partner[i];
+                if (flags[best] & (kDead | kMergedNow)) continue;
+                Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
+                Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
+                float r_min = ap.min_distance * radii.h[l - 1];
+                bool blocked = false;
+                for_each_in_block_strided(grid, fluid, c, mid, r_min, radii.moved_slack(), team.rank(), Team::kSize,
+                                          [&](uint32_t k, Vec3, float) {
+                                              if (k == i || k == best || (flags[k] & kDead)) return;
+                                              blocked = true;
+                                          });
+                if (team.any(blocked)) continue;
+                if (team.rank() == 0) {
+                    uint32_t j = best;
+                    Float4 vi = vel[i], vj = vel[j];
+                    pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
+                    vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
+                    if (temperature) {
+                        temperature[i] = 0.5f * (temperature[i] + temperature[j]);
+                        vapor[i] = 0.5f * (vapor[i] + vapor[j]);
+                        cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+                    }
+                    flags[i] = fi | kMergedNow;
+                    flags[j] |= kDead;
                 }
-                flags[i] = fi | kMergedNow;
-                flags[j] |= kDead;
+                team.sync();
             }
-            team.sync();
         }
     }
 };

@@ -36,12 +36,13 @@ PBF_INLINE uint32_t float_bits(float x) {
 }
 
 // A team of threads that works on one item together and shares its loops: one warp of 32 lanes on the
-// GPU, a single thread on the CPU. any() is a vote over the team; sync() makes the writes of every lane
-// visible to the others (both are no-ops for a team of one).
+// GPU, a single thread on the CPU. any() is a vote over the team; ballot() gathers the members' votes into a
+// mask (bit k: member k's); sync() makes the writes of every lane visible to the others (no-ops for a team of one).
 struct SerialTeam {
     static constexpr uint32_t kSize = 1;
     PBF_HD uint32_t rank() const { return 0; }
     PBF_HD bool any(bool p) const { return p; }
+    PBF_HD uint32_t ballot(bool p) const { return p ? 1u : 0u; }
     PBF_HD void sync() const {}
 };
 
@@ -52,13 +53,24 @@ struct WarpTeam {
     PBF_HD uint32_t rank() const { return lane; }
 #if defined(__CUDA_ARCH__)
     __device__ bool any(bool p) const { return __any_sync(0xffffffffu, p); }
+    __device__ uint32_t ballot(bool p) const { return __ballot_sync(0xffffffffu, p); }
     __device__ void sync() const { __syncwarp(); }
 #else
     bool any(bool p) const { return p; }  // host pass of nvcc only; teams run on the device
+    uint32_t ballot(bool p) const { return p ? 1u : 0u; }
     void sync() const {}
 #endif
 };
 #endif
+
+// Index of the lowest set bit of a non-zero mask.
+PBF_HD inline uint32_t lowest_set_bit(uint32_t mask) {
+#if defined(__CUDA_ARCH__)
+    return uint32_t(__ffs(int(mask)) - 1);
+#else
+    return uint32_t(__builtin_ctz(mask));
+#endif
+}
 
 struct Vec3 {
     float x, y, z;
