@@ -128,7 +128,8 @@ def test_every_variant_runs_the_scene_it_names(scale):
         assert config.finest_spacing_m == pytest.approx(config.spacing_m / 2 ** (config.max_level / 3))
         assert config.name.startswith(f"{config.criterion}-{config.spacing_m / f:g}m")
     assert {"thermal-68m-L4", "thermal-54m-t0.25", "thermal-68m-L4-t0.25-e4",
-            "thermal-68m-L4-t0.25-e4-km"} <= {c.name for c in configs}
+            "thermal-68m-L4-t0.25-e4-km", "thermal-68m-L4-t0.25-e8-km",
+            "thermal-68m-L4-t0.25-e16-km"} <= {c.name for c in configs}
 
 
 def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):

@@ -7,8 +7,9 @@ For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide dom
   on the water a particle would hold after rising ``lookahead_height``, ``thermal`` = eq. 20 on the heat
   excess over the environment as cloud water) at two level-0 spacings (68 and 54 m) with max level 3, and
   the :data:`FURTHER_VARIANTS` of ``thermal``: one level deeper from 68 m (``thermal-68m-L4``, finest 27 m),
-  eq. 20's split/merge thresholds times 0.25 (``-t0.25``), splitting and merging every 4 steps instead of
-  the adaptive scenes' 2 (``-e4``), and the kernel at the pair's mean radius instead of eq. 19 (``-km``),
+  eq. 20's split/merge thresholds times 0.25 (``-t0.25``), splitting and merging every 4 (8, 16) steps instead of
+  the adaptive scenes' 2 (``-e4``, ``-e8``, ``-e16``), and the kernel at the pair's mean radius instead of eq. 19
+  (``-km``),
 * a reference: uniform runs at 27 m (1.69M particles at the GPU scale), never one of the compared runs,
 
 each over ``seeds`` noise seeds (>= 3), all deposited on one 32^3 analysis grid.  Every compared configuration
@@ -107,8 +108,10 @@ FURTHER_VARIANTS = (("thermal", 68.0, 4, 1.0, 0, ""),    # (criterion, level-0 s
                     ("thermal", 68.0, 4, 0.25, 0, ""),   # more of the warm air fine), splitting and merging every 4
                     ("thermal", 68.0, 4, 0.25, 4, ""),   # steps instead of the scenes' 2 (half the adaptive phases'
                     ("thermal", 68.0, 3, 0.25, 4, ""),   # cost), and the kernel at the pair's mean radius instead
-                    ("thermal", 68.0, 4, 0.25, 4, "mean_radius"),   # of eq. 19's mean of kernels (-km)
-                    ("thermal", 68.0, 4, 0.25, 0, "mean_radius"))
+                    ("thermal", 68.0, 4, 0.25, 4, "mean_radius"),   # of eq. 19's mean of kernels (-km); with
+                    ("thermal", 68.0, 4, 0.25, 0, "mean_radius"),   # -km, splitting and merging every 8 and
+                    ("thermal", 68.0, 4, 0.25, 8, "mean_radius"),   # 16 steps
+                    ("thermal", 68.0, 4, 0.25, 16, "mean_radius"))
 DEFAULT_MAX_LEVEL = 3
 REFERENCE_SPACING = 27.0
 ANALYSIS_GRID = (32, 32, 32)

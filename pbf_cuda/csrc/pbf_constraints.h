@@ -320,7 +320,11 @@ struct PositionCorrection {
 // Physical viscosity (Morris et al. 1997), pairwise so that momentum is conserved:
 //   dv_i = nu dt lap(v)_i,  lap(v)_i = 2 sum_j (m_j / rho0) (v_i - v_j) (x_ij . grad W_ij) / (|x_ij|^2 + eps)
 // (the same SPH Laplacian as the smoothing of eq. 13; explicit, stable for nu dt / d^2 below ~0.1).
-template <class Policy>
+//
+// PairSum: a sum over the same pairs that a later pass of the step needs, taken along (the smoothing limiter's
+// S_i, smoothing.h: LimiterWeight): pair_sum(r, r2, h_i, h_j, m_j) summed over j != i into pair_sum.out[i], where
+// pair_sum.out is not nullptr.
+template <class Policy, class PairSum>
 struct ViscosityVorticity {
     GridGeometry grid;
     CellRanges fluid;
@@ -334,6 +338,7 @@ struct ViscosityVorticity {
     const float* density;
     Float4* vel_out;
     Float4* omega;  // xyz = omega, w = |omega|
+    PairSum pair_sum;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
@@ -342,8 +347,10 @@ struct ViscosityVorticity {
         Vec3 visc{0, 0, 0};
         Vec3 lap{0, 0, 0};
         Vec3 w{0, 0, 0};
+        float summed = 0.0f;
         for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
+            if (pair_sum.out) summed += pair_sum(r, r2, hi, hj, mj);
             float vol = mj / density[j];
             Vec3 dv = xyz(vel[j]) - vi;
             if (xsph > 0.0f) visc += (vol * Policy::W(r2, hi, hj)) * dv;
@@ -355,6 +362,7 @@ struct ViscosityVorticity {
         });
         vel_out[i] = make_float4(vi + xsph * visc + nu_dt * lap, 0.0f);
         if (want_vorticity) omega[i] = make_float4(w, length(w));
+        if (pair_sum.out) pair_sum.out[i] = summed;
     }
 };
 

@@ -282,21 +282,23 @@ inline void update_velocity(SolverData& d) {
     if (!d.p.velocity_projection) parallel_for(d.n, UpdateVelocity{raw(d.pos), raw(d.pred), raw(d.vel), 1.0f / d.p.dt});
 }
 
-// XSPH viscosity, physical viscosity and vorticity confinement (Macklin eq. 15-17), where switched on.
-template <class Policy>
-void viscosity_vorticity(SolverData& d) {
+// XSPH viscosity, physical viscosity and vorticity confinement (Macklin eq. 15-17), where switched on, with
+// pair_sum taken along (ViscosityVorticity). Returns whether it ran, i.e. whether pair_sum.out was written.
+template <class Policy, class PairSum>
+bool viscosity_vorticity(SolverData& d, const PairSum& pair_sum) {
     const Params& p = d.p;
-    if (!viscosity_vorticity_active(p)) return;
+    if (!viscosity_vorticity_active(p)) return false;
     const float dt = p.dt;
     CellRanges fl = d.fluid_ranges(d.pred);
     bool vort = p.vorticity > 0.0f;
-    parallel_for(d.n, ViscosityVorticity<Policy>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
-                                                 d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
-                                                 raw(d.vel_tmp), vort ? raw(d.omega) : nullptr});
+    parallel_for(d.n, ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
+                                                          d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
+                                                          raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum});
     d.vel.swap(d.vel_tmp);
     if (vort)
         parallel_for(d.n, VorticityConfinement<Policy>{d.grid, fl, d.radii, p.h0, p.vorticity, dt, raw(d.density),
                                                        raw(d.omega), raw(d.vel)});
+    return true;
 }
 
 // Divergence-free velocity projection at the predicted positions (pbf_constraints.h): preconditioned

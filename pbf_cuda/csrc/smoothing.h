@@ -53,22 +53,33 @@ struct SmoothingPair {
     }
 };
 
-// S_i = sum_j c_ij of the limiter (the first pass).
+// The limiter's weight of pair (i, j), max(c_ij, 0): S_i sums it over j != i. out: where S_i goes (nullptr: the step
+// does not need it). Summed by SmoothingWeightSums, or by the XSPH pass, which visits the same pairs at the same
+// positions in the same order (ViscosityVorticity's PairSum, pbf_constraints.h), so S_i is bitwise the same.
+template <class Policy>
+struct LimiterWeight {
+    SmoothingPair pair;
+    float* out;
+    PBF_HD float operator()(Vec3 r, float r2, float hi, float hj, float mj) const {
+        return fmaxf(pair.coefficient<Policy>(r, r2, hi, hj, mj), 0.0f);
+    }
+};
+
+// S_i = sum_j c_ij of the limiter, as a pass of its own (where no XSPH pass runs to take it along).
 template <class Policy>
 struct SmoothingWeightSums {
     GridGeometry grid;
     CellRanges fluid;
     LevelRadii radii;
-    SmoothingPair pair;
-    float* weight_sum;
+    LimiterWeight<Policy> weight;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
-        float hi = Policy::radius(radii, pair.h0, pi.w);
+        float hi = Policy::radius(radii, weight.pair.h0, pi.w);
         float s = 0.0f;
-        for_each_fluid_neighbor<Policy>(grid, fluid, radii, pair.h0, i, xyz(pi), [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
-            if (j != i) s += fmaxf(pair.coefficient<Policy>(r, r2, hi, hj, mj), 0.0f);
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, weight.pair.h0, i, xyz(pi), [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (j != i) s += weight(r, r2, hi, hj, mj);
         });
-        weight_sum[i] = s;
+        weight.out[i] = s;
     }
 };
 

@@ -15,10 +15,28 @@ inline bool smoothing_active(const Params& p) {
     return p.thermodynamics && p.kappa > 0.0f && (p.smooth_fields[0] || p.smooth_fields[1] || p.smooth_fields[2]);
 }
 
-// Smooths the fields; the budget sums before and after the pass go to the step's StepSums (the change of sum m T
-// it made, kg K, is 0 up to rounding: the pairwise form conserves it).
+inline SmoothingPair smoothing_pair(const SolverData& d) {
+    return SmoothingPair{d.p.h0, d.cp.inv_rest_density, d.p.smoothing_beta, d.p.smoothing_epsilon};
+}
+
+// The limiter's pass is needed where the weights can pass its cap S_cap (smoothing.h): mixed levels, or kappa above
+// S_cap (a lattice's S_i is about 0.9 kappa < kappa, so at kappa <= S_cap it would scale no pair and is skipped).
 template <class Policy>
-void smooth_fields(SolverData& d) {
+bool smoothing_limited(const SolverData& d) {
+    return d.smoothing && (!std::is_same<Policy, UniformPolicy>::value || d.p.kappa > kSmoothingWeightCap);
+}
+
+// The limiter's weight sums S_i as a sum for the XSPH pass to take along (out == nullptr where none is needed).
+template <class Policy>
+LimiterWeight<Policy> limiter_weight_sums(SolverData& d) {
+    return LimiterWeight<Policy>{smoothing_pair(d), smoothing_limited<Policy>(d) ? raw(d.float_tmp) : nullptr};
+}
+
+// Smooths the fields; the budget sums before and after the pass go to the step's StepSums (the change of sum m T
+// it made, kg K, is 0 up to rounding: the pairwise form conserves it). weight_sums_ready: the XSPH pass has
+// written the limiter's S_i (limiter_weight_sums); otherwise the limiter's pass runs here, where needed.
+template <class Policy>
+void smooth_fields(SolverData& d, bool weight_sums_ready) {
     if (!d.smoothing) return;
     StepSums* sums = raw(d.step_sums);
     reduce_budget_into(d, d.pred, false, false, &sums->before_smoothing);
@@ -31,12 +49,11 @@ void smooth_fields(SolverData& d) {
         sf.out[k] = raw(d.smooth_out[k]);
     }
     CellRanges fluid = d.fluid_ranges(d.pred);
-    SmoothingPair pair{d.p.h0, d.cp.inv_rest_density, d.p.smoothing_beta, d.p.smoothing_epsilon};
-    // The limiter's pass where the weights can pass its cap S_cap (smoothing.h): mixed levels, or kappa above
-    // S_cap (a lattice's S_i is about 0.9 kappa < kappa, so at kappa <= S_cap it would scale no pair and is skipped).
+    const SmoothingPair pair = smoothing_pair(d);
     const float* weight_sum = nullptr;
-    if (!std::is_same<Policy, UniformPolicy>::value || d.p.kappa > kSmoothingWeightCap) {
-        parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, pair, raw(d.float_tmp)});
+    if (smoothing_limited<Policy>(d)) {
+        if (!weight_sums_ready)
+            parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, limiter_weight_sums<Policy>(d)});
         weight_sum = raw(d.float_tmp);
     }
     parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.atm.env, weight_sum, sf});

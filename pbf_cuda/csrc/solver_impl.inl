@@ -65,11 +65,12 @@ public:
         solve_density<Policy>(d, walls);             // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
         narrow_neighbor_lists<Policy>(d);            // x* is final: the lists keep the pairs within support
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
-        viscosity_vorticity<Policy>(d);              // XSPH, viscosity, vorticity confinement
+        // XSPH, viscosity, vorticity confinement; the smoothing limiter's weight sums on the same pairs
+        const bool limiter_ready = viscosity_vorticity<Policy>(d, limiter_weight_sums<Policy>(d));
         d.clock.end(kPhaseSolver);
         d.clock.end(kPhasePBF);
 
-        smooth_fields<Policy>(d);                    // temperature smoothing (eq. 12-17)
+        smooth_fields<Policy>(d, limiter_ready);     // temperature smoothing (eq. 12-17)
         cloud_dynamics(d);                           // heating .. buoyancy (eq. 5-11, C1-C3)
 
         d.clock.begin(kPhasePBF);
