@@ -283,7 +283,8 @@ inline void update_velocity(SolverData& d) {
 }
 
 // XSPH viscosity, physical viscosity and vorticity confinement (Macklin eq. 15-17), where switched on, with
-// pair_sum taken along (ViscosityVorticity). Returns whether it ran, i.e. whether pair_sum.out was written.
+// pair_sum taken along (ViscosityVorticity). Returns whether the pass ran: then pair_sum.out, where not nullptr,
+// holds the sums.
 template <class Policy, class PairSum>
 bool viscosity_vorticity(SolverData& d, const PairSum& pair_sum) {
     const Params& p = d.p;
