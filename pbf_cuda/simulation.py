@@ -291,7 +291,9 @@ class Simulation:
     def from_arrays(cls, scene: Scene | str, fluid: dict, boundary: dict | None = None,
                     backend: str = "auto") -> "Simulation":
         """A simulation from given particle arrays (keys as `state()`: position, velocity, mass, id,
-        temperature, vapor, cloud); boundary particles from the scene unless given."""
+        temperature, vapor, cloud; optionally projection_impulse, the velocity projection's last impulse
+        mu per particle, kg m^2/s, which warm-starts the next projection); boundary particles from the scene
+        unless given."""
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         n = len(fluid["position"])
@@ -304,6 +306,8 @@ class Simulation:
         }
         for key in ("temperature", "vapor", "cloud"):
             arrays[key] = np.ascontiguousarray(fluid.get(key, zeros), np.float32)
+        if fluid.get("projection_impulse") is not None:
+            arrays["projection_impulse"] = np.ascontiguousarray(fluid["projection_impulse"], np.float32)
         for key, arr in arrays.items():
             if len(arr) != n:
                 raise ValueError(f"from_arrays: fluid['{key}'] has {len(arr)} rows, position has {n}")

@@ -394,3 +394,70 @@ def test_limiter_sums_taken_along_by_xsph_are_the_limiters_own(backend, seed, fi
     # and the limited step keeps the vapor within the range the state had (the test above)
     v0, v1 = st0["vapor"].astype(np.float64), runs[0]["vapor"].astype(np.float64)
     assert v1.min() >= v0.min() - 1e-9 and v1.max() <= v0.max() + 1e-9
+
+
+PAIR_KERNELS_UNDER_TEST = {   # the three kernel policies of the solver (kernel_policy.h)
+    "uniform": {"adaptive.enabled": False},
+    "eq19": {"adaptive.enabled": True, "adaptive.max_level": 4, "adaptive.pair_kernel": "mean_of_kernels"},
+    "mean_radius": {"adaptive.enabled": True, "adaptive.max_level": 4, "adaptive.pair_kernel": "mean_radius"},
+}
+
+
+def _one_step_states(scenes, st0, backend):
+    runs = []
+    for scene in scenes:
+        sim = Simulation.from_arrays(scene, st0, backend=backend)
+        sim.step(1)
+        runs.append(sim.state())
+    return runs
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 10_000), policy=st.sampled_from(sorted(PAIR_KERNELS_UNDER_TEST)),
+       fine_level=st.integers(1, 3), impulse=st.sampled_from([1e6, 1e8]))
+def test_warm_start_and_narrowing_taken_along_by_xsph_are_their_own_passes(backend, seed, policy, fine_level, impulse):
+    """The XSPH pass takes along the velocity projection's warm start M^-1 J^T mu_prev (fluid pairs and walls) and
+    the narrowing of the neighbour lists; without XSPH and vorticity each has a pass of its own.  From a state at
+    rest, XSPH and vorticity change nothing (every v_j - v_i is 0), so with and without them the step must give
+    bitwise the same positions and velocities: the velocity then is the projection of the warm start of a random
+    impulse mu_prev (kg m^2/s; walls at the floor and the lid), read by every pass after the narrowing.  All three kernel
+    policies, on mixed-level states where adaptive."""
+    knobs = {"atmosphere.heating_rate": 0.0, "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
+             "particles.max_speed": 0.0, "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0,
+             **PAIR_KERNELS_UNDER_TEST[policy]}
+    along = small_cloud_scene(**knobs, **{"pbf.xsph": 0.05, "pbf.vorticity": 0.5})
+    alone = small_cloud_scene(**knobs, **{"pbf.xsph": 0.0, "pbf.vorticity": 0.0, "pbf.viscosity": 0.0})
+    st0 = mixed_level_state(along, seed, fine_level if policy != "uniform" else 0, clusters=12, tight=0.3)
+    st0["projection_impulse"] = (impulse * np.random.default_rng(seed).normal(size=len(st0["mass"]))).astype(np.float32)
+    with_xsph, without = _one_step_states((along, alone), st0, backend)
+    for key in ("position", "velocity", "temperature"):
+        np.testing.assert_array_equal(with_xsph[key], without[key], err_msg=key)
+    assert np.abs(with_xsph["velocity"]).max() > 1e-3                    # the warm start did move the air (mm/s to dm/s)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 10_000), policy=st.sampled_from(sorted(PAIR_KERNELS_UNDER_TEST)),
+       fine_level=st.integers(1, 3))
+def test_vorticity_confinement_taken_along_by_smoothing_is_its_own_pass(backend, seed, policy, fine_level):
+    """The smoothing pass takes the vorticity confinement along (the same pairs at x*, the same kernel gradients);
+    without smoothing it has a pass of its own.  Without buoyancy the temperature does not act on the flow within a
+    step, so with and without smoothing the step must give bitwise the same positions and velocities, while the
+    temperatures differ (the smoothing acted) and the velocities differ from a run without vorticity confinement
+    (the confinement acted).  All three kernel policies, random velocities, mixed-level states where adaptive."""
+    knobs = {"atmosphere.heating_rate": 0.0, "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
+             "particles.max_speed": 0.0, "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0,
+             "pbf.vorticity": 0.5, **PAIR_KERNELS_UNDER_TEST[policy]}
+    smoothed = small_cloud_scene(**knobs, **{"smoothing.kappa": 0.5, "smoothing.fields": ["temperature", "vapor"]})
+    unsmoothed = small_cloud_scene(**knobs, **{"smoothing.kappa": 0.0})
+    unconfined = small_cloud_scene(**{**knobs, "pbf.vorticity": 0.0}, **{"smoothing.kappa": 0.5})
+    st0 = mixed_level_state(smoothed, seed, fine_level if policy != "uniform" else 0, clusters=12, tight=0.3)
+    rng = np.random.default_rng(seed)
+    st0["velocity"] = rng.normal(0.0, 1.0, st0["position"].shape).astype(np.float32)
+    st0["temperature"] = (st0["temperature"] + rng.normal(0.0, 1.0, len(st0["mass"]))).astype(np.float32)
+    a, b, c = _one_step_states((smoothed, unsmoothed, unconfined), st0, backend)
+    for key in ("position", "velocity"):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert not np.array_equal(a["temperature"], b["temperature"])
+    assert not np.array_equal(a["velocity"], c["velocity"])

@@ -55,6 +55,15 @@ struct BudgetTerms {
     }
 };
 
+// The smoothing pass's change of sum m T, sum m (T_after - T_before) in double precision, kg K: 0 up to rounding,
+// the pairwise form conserves it (smoothing.h).
+struct SmoothingHeat {
+    const Float4* pos;   // w: mass, kg
+    const float* before;
+    const float* after;
+    PBF_HD double operator()(uint32_t i) const { return double(pos[i].w) * (double(after[i]) - double(before[i])); }
+};
+
 // ---- the stability check ------------------------------------------------------------------------
 // Stability and diagnostics reduction over the fluid particles.
 struct Reduced {
@@ -140,7 +149,7 @@ struct IsBad {
 // whole record once, at the step's end, for the budget and the check: no phase waits for its sum.
 struct StepSums {
     BudgetSums start, end;                       // the budget at the step's start (x) and end (x*, with v)
-    BudgetSums before_smoothing, after_smoothing;   // around the smoothing pass (its sum m T change)
+    double smoothing_heat;                       // the smoothing pass's change of sum m T, kg K (SmoothingHeat)
     ForcingSums forcing;                         // the cloud dynamics' forcing terms
     double shift_heat;                           // the density solve's heat booked by the kept shift, kg K
     Double2 shift_before, shift_after;           // (sum m y, sum m) around the density iterations

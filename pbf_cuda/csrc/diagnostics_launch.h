@@ -46,13 +46,13 @@ inline void budget_state(StepBudget& b, const BudgetSums& now) {
 }
 
 // The step's budget from its StepSums (copied to the host at the step's end): the sums at its start and end, the
-// smoothing's heat (sum m T after the pass less before; 0 up to rounding, the pairwise form conserves it), the
+// smoothing's heat (the change of sum m T it made; 0 up to rounding, the pairwise form conserves it), the
 // density solve's kept shift and the forcing terms.
 inline void record_budget(SolverData& d, const StepSums& s) {
     const BudgetSums& start = s.start;
     const BudgetSums& end = s.end;
     const ForcingSums forcing = d.p.thermodynamics ? s.forcing : ForcingSums{0.0, 0.0, 0.0};
-    const double smoothing_heat = d.smoothing ? s.after_smoothing.mT - s.before_smoothing.mT : 0.0;
+    const double smoothing_heat = d.smoothing && d.p.smooth_fields[0] ? s.smoothing_heat : 0.0;
     const double shift_heat = d.shift_y.empty() ? 0.0 : s.shift_heat;
     StepBudget& b = d.last_stats.budget;
     budget_state(b, end);

@@ -77,32 +77,38 @@ struct FillNeighbors {
 };
 
 // Particle i's row narrowed, in place and in order, to the candidates within their pair's support at the positions
-// the kernel sees (the step's final x*, after the density iterations): every later pass of the step (XSPH,
-// vorticity, smoothing, the projection's conjugate gradients) then reads only the pairs it sums, in the order it
+// the kernel sees (the step's final x*, after the density iterations): every later pass of the step (vorticity
+// confinement, smoothing, the projection's conjugate gradients) then reads only the pairs it sums, in the order it
 // summed them before, so its results are bitwise the same. A lattice neighbourhood has (1 + skin)^3 - 1 = 33%
-// more candidates than pairs.
+// more candidates than pairs. A pass over the pairs at x* takes the narrowing along (the XSPH pass,
+// ViscosityVorticity in pbf_constraints.h): for_each_fluid_neighbor calls it for exactly the pairs kept, i itself
+// included, and row slot `kept` is never ahead of the slots the pass has read.
+struct RowNarrowing {
+    uint32_t* count = nullptr;   // nullptr: the pass does not narrow
+    uint32_t* index = nullptr;
+    uint32_t row = 0, slot = 0;  // the lists' layout (CellRanges::candidate)
+    struct Cursor {
+        uint32_t* row;
+        uint32_t kept;
+    };
+    PBF_HD Cursor begin(uint32_t i) const { return Cursor{index + std::size_t(i) * row, 0}; }
+    PBF_HD void keep(Cursor& c, uint32_t j) const { c.row[std::size_t(c.kept++) * slot] = j; }
+    PBF_HD void finish(uint32_t i, const Cursor& c) const { count[i] = c.kept; }
+};
+
+// The narrowing as a pass of its own, where no XSPH pass runs to take it along.
 template <class Policy>
 struct NarrowNeighbors {
     GridGeometry grid;
     CellRanges fluid;   // with the lists
     LevelRadii radii;
     float h0;
-    uint32_t* count;
-    uint32_t* index;
+    RowNarrowing narrowing;
     PBF_HD void operator()(uint32_t i) const {
-        const Float4 pi = fluid.pos[i];
-        const Vec3 q = xyz(pi);
-        const float hi = Policy::radius(radii, h0, pi.w);
-        uint32_t* row = index + std::size_t(i) * fluid.nbr_row;
-        uint32_t kept = 0;
-        for (uint32_t k = 0, e = count[i]; k < e; ++k) {
-            const uint32_t j = row[std::size_t(k) * fluid.nbr_slot];
-            Vec3 r;
-            float r2, hj;
-            if (supported_pair<Policy>(grid, radii, h0, q, hi, fluid.pos[j], r, r2, hj))
-                row[std::size_t(kept++) * fluid.nbr_slot] = j;
-        }
-        count[i] = kept;
+        RowNarrowing::Cursor c = narrowing.begin(i);
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xyz(fluid.pos[i]),
+                                        [&](uint32_t j, Vec3, float, float, float) { narrowing.keep(c, j); });
+        narrowing.finish(i, c);
     }
 };
 

@@ -30,6 +30,7 @@
 #include "grid.h"
 #include "kernel_policy.h"
 #include "kernels.h"
+#include "neighbor_list.h"
 
 namespace pbf {
 
@@ -91,21 +92,51 @@ struct JacobianRow {
 
 // (M^-1 J^T a)_i rho0 = sum_j coef(j, r2, m_j, h_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
 // fluid pair's weight a_i m_j / m_i + a_j (+ the tensile term): the position correction (Macklin eq. 12-14,
-// a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum.
+// a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum. Its wall terms, added to sum after
+// the fluid pairs as for_each_constraint_neighbor visits them:
+template <class Policy>
+PBF_HD inline void add_wall_terms_transposed(const GridGeometry& grid, const WallNeighbourhoods& walls, float h0,
+                                             Vec3 xi, float hi, float ai, float mi, Vec3& sum) {
+    if (walls.offset && near_wall(grid, xi, h0))
+        for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, [&](Vec3 r, float r2, float mb) {
+            sum += (ai * mb / mi) * Policy::grad_W(r, r2, hi, h0);
+        });
+}
+
 template <class Policy, class Coef>
 PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid,
                                   const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i,
                                   Vec3 xi, float hi, float ai, float mi, Coef&& coef) {
     Vec3 sum{0, 0, 0};
-    for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, h0, i, xi,
-        [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
-            if (j == i) return;
-            float c = coef(j, r2, mj, hj);
-            sum += c * Policy::grad_W(r, r2, hi, hj);
-        },
-        [&](Vec3 r, float r2, float mb) { sum += (ai * mb / mi) * Policy::grad_W(r, r2, hi, h0); });
+    for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+        if (j == i) return;
+        float c = coef(j, r2, mj, hj);
+        sum += c * Policy::grad_W(r, r2, hi, hj);
+    });
+    add_wall_terms_transposed<Policy>(grid, walls, h0, xi, hi, ai, mi, sum);
     return sum;
 }
+
+// The velocity projection's warm start g = M^-1 J^T mu (ApplyJT below with the previous step's impulse mu) summed
+// by another pass over the pairs at x*, the XSPH pass (ViscosityVorticity below), which visits them in ApplyJT's
+// order: the fluid pairs in list order, then the walls (add_wall_terms_transposed), so g is bitwise ApplyJT's and
+// the projection starts one neighbour pass later into its work (pbf_constraints_launch.h: solve_divergence).
+// Only without the gradient correction, whose L is formed when the projection starts.
+template <class Policy>
+struct WarmStartImpulse {
+    WallNeighbourhoods walls;
+    ConstraintParams cp;
+    const float* mu = nullptr;   // the previous step's impulse
+    Float4* out = nullptr;       // g; nullptr: not summed by this pass
+    PBF_HD void add_fluid(Vec3& sum, float mu_i, float mi, uint32_t j, float mj, Vec3 gw) const {
+        float c = mu_i * mj / mi + mu[j];
+        sum += c * gw;
+    }
+    PBF_HD void finish(const GridGeometry& grid, uint32_t i, Vec3 xi, float hi, float mu_i, float mi, Vec3 sum) const {
+        add_wall_terms_transposed<Policy>(grid, walls, cp.h0, xi, hi, mu_i, mi, sum);
+        out[i] = make_float4(cp.inv_rest_density * sum, 0.0f);
+    }
+};
 
 // Density (eq. 1, 18) and lambda (eq. 4) of fluid particle i.
 template <class Policy>
@@ -321,9 +352,12 @@ struct PositionCorrection {
 //   dv_i = nu dt lap(v)_i,  lap(v)_i = 2 sum_j (m_j / rho0) (v_i - v_j) (x_ij . grad W_ij) / (|x_ij|^2 + eps)
 // (the same SPH Laplacian as the smoothing of eq. 13; explicit, stable for nu dt / d^2 below ~0.1).
 //
-// PairSum: a sum over the same pairs that a later pass of the step needs, taken along (the smoothing limiter's
-// S_i, smoothing.h: LimiterWeight): pair_sum(r, r2, h_i, h_j, m_j) summed over j != i into pair_sum.out[i], where
-// pair_sum.out is not nullptr.
+// Taken along, on the same pairs at the same positions in the same order (each where its pointer is set):
+//   pair_sum     a sum a later pass of the step needs (the smoothing limiter's S_i, smoothing.h: LimiterWeight):
+//                pair_sum(r, r2, h_i, h_j, m_j) summed over j != i into pair_sum.out[i];
+//   narrowing    the lists narrowed to the pairs within support at x* (neighbor_list.h: RowNarrowing), for the
+//                passes after this one;
+//   warm_start   the velocity projection's first M^-1 J^T mu (WarmStartImpulse above).
 template <class Policy, class PairSum>
 struct ViscosityVorticity {
     GridGeometry grid;
@@ -339,56 +373,59 @@ struct ViscosityVorticity {
     Float4* vel_out;
     Float4* omega;  // xyz = omega, w = |omega|
     PairSum pair_sum;
+    RowNarrowing narrowing;
+    WarmStartImpulse<Policy> warm_start;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
-        float hi = Policy::radius(radii, h0, pi.w);
+        float mi = pi.w;
+        float hi = Policy::radius(radii, h0, mi);
         Vec3 vi = xyz(vel[i]);
         Vec3 visc{0, 0, 0};
         Vec3 lap{0, 0, 0};
         Vec3 w{0, 0, 0};
         float summed = 0.0f;
+        const bool warm = warm_start.out != nullptr;
+        const float mu_i = warm ? warm_start.mu[i] : 0.0f;
+        Vec3 impulse{0, 0, 0};
+        RowNarrowing::Cursor kept{};
+        if (narrowing.count) kept = narrowing.begin(i);
         for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (narrowing.count) narrowing.keep(kept, j);
             if (j == i) return;
             if (pair_sum.out) summed += pair_sum(r, r2, hi, hj, mj);
             float vol = mj / density[j];
             Vec3 dv = xyz(vel[j]) - vi;
             if (xsph > 0.0f) visc += (vol * Policy::W(r2, hi, hj)) * dv;
-            if (want_vorticity || nu_dt > 0.0f) {
+            if (want_vorticity || nu_dt > 0.0f || warm) {
                 Vec3 gw = Policy::grad_W(r, r2, hi, hj);
                 if (want_vorticity) w += vol * cross(gw, dv);
                 if (nu_dt > 0.0f) lap -= (2.0f * mj * inv_rest_density * dot(r, gw) / (r2 + 0.01f * hi * hj)) * dv;
+                if (warm) warm_start.add_fluid(impulse, mu_i, mi, j, mj, gw);
             }
         });
         vel_out[i] = make_float4(vi + xsph * visc + nu_dt * lap, 0.0f);
         if (want_vorticity) omega[i] = make_float4(w, length(w));
         if (pair_sum.out) pair_sum.out[i] = summed;
+        if (narrowing.count) narrowing.finish(i, kept);
+        if (warm) warm_start.finish(grid, i, xi, hi, mu_i, mi, impulse);
     }
 };
 
 // Vorticity confinement force f_i = eps (N x omega_i), N = eta / |eta|, eta = grad |omega|
-// (Macklin eq. 16), added to the velocity over one step.
-template <class Policy>
-struct VorticityConfinement {
-    GridGeometry grid;
-    CellRanges fluid;
-    LevelRadii radii;
-    float h0;
+// (Macklin eq. 16), added to the velocity over one step: eta summed over the pairs j != i (add), then the force
+// applied (apply). A pass of its own (VorticityConfinement below), or taken along by the smoothing pass, which
+// visits the same pairs at x* in the same order (SmoothScalars, smoothing.h), so the velocities are bitwise the same.
+struct ConfinementSum {
     float epsilon;
     float dt;
     const float* density;
-    const Float4* omega;
-    Float4* vel;
-    PBF_HD void operator()(uint32_t i) const {
-        Float4 pi = fluid.pos[i];
-        Vec3 xi = xyz(pi);
-        float hi = Policy::radius(radii, h0, pi.w);
-        float wi = omega[i].w;
-        Vec3 eta{0, 0, 0};
-        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
-            if (j == i) return;
-            eta += ((mj / density[j]) * (omega[j].w - wi)) * Policy::grad_W(r, r2, hi, hj);
-        });
+    const Float4* omega;   // xyz = omega, w = |omega| (ViscosityVorticity)
+    Float4* vel = nullptr; // nullptr: no vorticity confinement in this pass
+    PBF_HD void add(Vec3& eta, float wi, uint32_t j, float mj, Vec3 gw) const {
+        eta += ((mj / density[j]) * (omega[j].w - wi)) * gw;
+    }
+    PBF_HD void apply(uint32_t i, Vec3 eta) const {
         float len = length(eta);
         if (len > 1e-20f) {
             Vec3 n = (1.0f / len) * eta;
@@ -396,6 +433,27 @@ struct VorticityConfinement {
             Float4 v = vel[i];
             vel[i] = Float4{v.x + dt * f.x, v.y + dt * f.y, v.z + dt * f.z, v.w};
         }
+    }
+};
+
+template <class Policy>
+struct VorticityConfinement {
+    GridGeometry grid;
+    CellRanges fluid;
+    LevelRadii radii;
+    float h0;
+    ConfinementSum confinement;
+    PBF_HD void operator()(uint32_t i) const {
+        Float4 pi = fluid.pos[i];
+        Vec3 xi = xyz(pi);
+        float hi = Policy::radius(radii, h0, pi.w);
+        float wi = confinement.omega[i].w;
+        Vec3 eta{0, 0, 0};
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (j == i) return;
+            confinement.add(eta, wi, j, mj, Policy::grad_W(r, r2, hi, hj));
+        });
+        confinement.apply(i, eta);
     }
 };
 

@@ -264,17 +264,22 @@ inline bool viscosity_vorticity_active(const Params& p) {
 }
 
 // Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
-// (NarrowNeighbors, neighbor_list.h), where enough neighbour passes follow at x* to pay for the narrowing pass:
-// the velocity projection's 2 divergence_iterations + 1, XSPH / viscosity, vorticity confinement, smoothing.
+// (RowNarrowing, neighbor_list.h). The XSPH pass takes the narrowing along (viscosity_vorticity below); where no
+// XSPH pass runs, a pass of its own narrows them where enough neighbour passes follow at x* to pay for it: the
+// velocity projection's 2 divergence_iterations + 1, vorticity confinement, smoothing.
+inline RowNarrowing list_narrowing(SolverData& d) {
+    if (!d.lists_ready) return RowNarrowing{};
+    return RowNarrowing{raw(d.nbr_count), raw(d.nbr_index), d.nbr_row, d.nbr_slot};
+}
+
 template <class Policy>
 void narrow_neighbor_lists(SolverData& d) {
     if (!d.lists_ready) return;
     const Params& p = d.p;
     const int passes = (p.velocity_projection ? 2 * p.divergence_iterations + 1 : 0) +
-                       (viscosity_vorticity_active(p) ? 1 : 0) + (p.vorticity > 0.0f ? 1 : 0) + (d.smoothing ? 1 : 0);
+                       (p.vorticity > 0.0f ? 1 : 0) + (d.smoothing ? 1 : 0);
     if (passes < 3) return;
-    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, raw(d.nbr_count),
-                                              raw(d.nbr_index)});
+    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, list_narrowing(d)});
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).
@@ -282,36 +287,62 @@ inline void update_velocity(SolverData& d) {
     if (!d.p.velocity_projection) parallel_for(d.n, UpdateVelocity{raw(d.pos), raw(d.pred), raw(d.vel), 1.0f / d.p.dt});
 }
 
-// XSPH viscosity, physical viscosity and vorticity confinement (Macklin eq. 15-17), where switched on, with
-// pair_sum taken along (ViscosityVorticity). Returns whether the pass ran: then pair_sum.out, where not nullptr,
-// holds the sums.
+// The velocity projection's warm start M^-1 J^T mu_prev, summed by the XSPH pass where the projection runs without
+// the gradient correction (WarmStartImpulse, pbf_constraints.h). It waits in pos_tmp, the density iterations' second
+// buffer, which nothing reads between them and the next step's sort.
+template <class Policy>
+WarmStartImpulse<Policy> warm_start_impulse(SolverData& d, const WallNeighbourhoods& walls) {
+    if (!d.p.velocity_projection || d.p.gradient_correction) return WarmStartImpulse<Policy>{walls, d.cp};
+    return WarmStartImpulse<Policy>{walls, d.cp, raw(d.cg_mu), raw(d.pos_tmp)};
+}
+
+// The vorticity confinement (ConfinementSum, pbf_constraints.h) on this step's velocities; off (vel nullptr) where
+// pbf.vorticity is 0. Where the smoothing pass runs it takes the confinement along (smoothing_launch.h), else it has
+// a pass of its own after the XSPH pass (viscosity_vorticity below).
+inline ConfinementSum confinement(SolverData& d) {
+    if (!(d.p.vorticity > 0.0f)) return ConfinementSum{d.p.vorticity, d.p.dt, nullptr, nullptr};
+    return ConfinementSum{d.p.vorticity, d.p.dt, raw(d.density), raw(d.omega), raw(d.vel)};
+}
+
+// What the XSPH pass took along (ViscosityVorticity): the pair sum's out, where set, holds its sums; the lists are
+// narrowed; the warm start's impulse is in pos_tmp (warm_start_impulse).
+struct XsphRiders {
+    bool pair_sum = false, narrowed = false, warm_start = false;
+};
+
+// XSPH viscosity, physical viscosity and the vorticity omega (Macklin eq. 15-17), where switched on, with pair_sum,
+// the lists' narrowing and the projection's warm start taken along (ViscosityVorticity), then the vorticity
+// confinement where no smoothing pass takes it along. Returns what was taken along: nothing where the pass did not
+// run.
 template <class Policy, class PairSum>
-bool viscosity_vorticity(SolverData& d, const PairSum& pair_sum) {
+XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const WallNeighbourhoods& walls) {
     const Params& p = d.p;
-    if (!viscosity_vorticity_active(p)) return false;
+    if (!viscosity_vorticity_active(p)) return XsphRiders{};
     const float dt = p.dt;
     CellRanges fl = d.fluid_ranges(d.pred);
     bool vort = p.vorticity > 0.0f;
+    const RowNarrowing narrowing = list_narrowing(d);
+    const WarmStartImpulse<Policy> warm = warm_start_impulse<Policy>(d, walls);
     parallel_for(d.n, ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
                                                           d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
-                                                          raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum});
+                                                          raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum,
+                                                          narrowing, warm});
     d.vel.swap(d.vel_tmp);
-    if (vort)
-        parallel_for(d.n, VorticityConfinement<Policy>{d.grid, fl, d.radii, p.h0, p.vorticity, dt, raw(d.density),
-                                                       raw(d.omega), raw(d.vel)});
-    return true;
+    if (vort && !d.smoothing) parallel_for(d.n, VorticityConfinement<Policy>{d.grid, fl, d.radii, p.h0, confinement(d)});
+    return XsphRiders{pair_sum.out != nullptr, narrowing.count != nullptr, warm.out != nullptr};
 }
 
 // Divergence-free velocity projection at the predicted positions (pbf_constraints.h): preconditioned
 // conjugate gradients on A mu = -J v, A = J M^-1 J^T, updating v += alpha M^-1 J^T p as it goes.
 // The kinetic energy of v falls with every iteration (CG minimises it along conjugate directions).
 // Warm start: the previous step's mu (the pressure impulse, which changes slowly) is applied first,
-// v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection.
+// v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection. warm_ready:
+// the XSPH pass has summed M^-1 J^T mu_prev into pos_tmp (warm_start_impulse).
 // The host queues all divergence_iterations iterations without reading a scalar: the dot products go to
 // d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
 // (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
-void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd) {
+void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready) {
     CellRanges fl = d.fluid_ranges(d.pred);
     const std::size_t n = d.n;
     const GridGeometry& grid = d.grid;
@@ -331,8 +362,12 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd) {
         L = raw(d.grad_correction);
         parallel_for(n, GradientCorrection<Policy>{grid, fl, bnd, radii, cp, L});
     }
-    parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
-    parallel_for(n, AddVelocity{g, v});
+    if (warm_ready) {
+        parallel_for(n, AddVelocity{raw(d.pos_tmp), v});
+    } else {
+        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
+        parallel_for(n, AddVelocity{g, v});
+    }
     // r = -J v, z = r / diag, p = z
     parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L});
     parallel_for(n, CgStart{r, diag, p});
@@ -371,16 +406,16 @@ inline void remove_column_drift(SolverData& d) {
 
 // The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.
 template <class Policy>
-void project_velocity(SolverData& d, const WallNeighbourhoods& walls) {
+void project_velocity(SolverData& d, const WallNeighbourhoods& walls, bool warm_ready) {
     if (!d.p.velocity_projection) return;
     d.clock.begin(kPhaseSolver);
     const Vec3 gravity = gravity_of(d.p);
     if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
         parallel_for(d.n, AddAcceleration{raw(d.vel), d.p.dt * gravity});
     if (d.p.gradient_correction)
-        solve_divergence<Policy, true>(d, walls);
+        solve_divergence<Policy, true>(d, walls, false);
     else
-        solve_divergence<Policy, false>(d, walls);
+        solve_divergence<Policy, false>(d, walls, warm_ready);
     if (d.p.remove_column_drift && !d.p.periodic[1]) remove_column_drift(d);   // sum m u_y = 0
     d.clock.end(kPhaseSolver);
 }

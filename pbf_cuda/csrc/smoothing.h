@@ -30,6 +30,7 @@
 #include "grid.h"
 #include "kernel_policy.h"
 #include "kernels.h"
+#include "pbf_constraints.h"
 
 namespace pbf {
 
@@ -44,12 +45,16 @@ constexpr float kSmoothingWeightCap = 0.5f;  // S_cap of the limiter: at most ha
 // (beta < 0, and x_ij . grad W_ij < 0 for the spiky kernel).
 struct SmoothingPair {
     float h0, inv_rest_density, beta0, eps_rel;
+    // ... with the pair's kernel gradient gw = grad W_ij given
     template <class Policy>
-    PBF_HD float coefficient(Vec3 r, float r2, float hi, float hj, float mj) const {
+    PBF_HD float coefficient(Vec3 r, float r2, float hi, float hj, float mj, Vec3 gw) const {
         float beta_i = Policy::area_scaled(beta0, hi, h0);     // beta_l = beta_0 (h_l / h0)^2
         float beta_j = Policy::area_scaled(beta0, hj, h0);
-        Vec3 gw = Policy::grad_W(r, r2, hi, hj);
         return 0.5f * (beta_i + beta_j) * mj * inv_rest_density * dot(r, gw) / (r2 + eps_rel * hi * hj);
+    }
+    template <class Policy>
+    PBF_HD float coefficient(Vec3 r, float r2, float hi, float hj, float mj) const {
+        return coefficient<Policy>(r, r2, hi, hj, mj, Policy::grad_W(r, r2, hi, hj));
     }
 };
 
@@ -83,6 +88,8 @@ struct SmoothingWeightSums {
     }
 };
 
+// The fields' Jacobi step, with the vorticity confinement taken along where confinement.vel is set (ConfinementSum,
+// pbf_constraints.h: the same pairs at x*, the same gradients).
 template <class Policy>
 struct SmoothScalars {
     GridGeometry grid;
@@ -92,6 +99,7 @@ struct SmoothScalars {
     EnvironmentProfile env;   // T0(y) (temperature is smoothed as its anomaly T - T0(y))
     const float* weight_sum;  // S_i of the limiter; nullptr: no limiter
     SmoothingFields f;
+    ConfinementSum confinement;
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
@@ -99,9 +107,14 @@ struct SmoothScalars {
         float s_i = weight_sum ? weight_sum[i] : 0.0f;
         float vi[3], dT[3] = {0, 0, 0};
         for (int k = 0; k < 3; ++k) vi[k] = f.in[k] ? f.in[k][i] : 0.0f;
+        const bool confine = confinement.vel != nullptr;
+        const float wi = confine ? confinement.omega[i].w : 0.0f;
+        Vec3 eta{0, 0, 0};
         for_each_fluid_neighbor<Policy>(grid, fluid, radii, pair.h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (j == i) return;
-            float c = pair.coefficient<Policy>(r, r2, hi, hj, mj);
+            Vec3 gw = Policy::grad_W(r, r2, hi, hj);
+            if (confine) confinement.add(eta, wi, j, mj, gw);
+            float c = pair.coefficient<Policy>(r, r2, hi, hj, mj, gw);
             if (weight_sum) {
                 float s = fmaxf(s_i, weight_sum[j]);
                 if (s > kSmoothingWeightCap) c *= kSmoothingWeightCap / s;
@@ -112,6 +125,7 @@ struct SmoothScalars {
         });
         for (int k = 0; k < 3; ++k)
             if (f.in[k]) f.out[k][i] = vi[k] + dT[k];
+        if (confine) confinement.apply(i, eta);
     }
 };
 

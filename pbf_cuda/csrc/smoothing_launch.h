@@ -4,6 +4,7 @@
 #include <type_traits>
 
 #include "diagnostics_launch.h"
+#include "pbf_constraints_launch.h"
 #include "smoothing.h"
 #include "solver_data.h"
 
@@ -32,14 +33,14 @@ LimiterWeight<Policy> limiter_weight_sums(SolverData& d) {
     return LimiterWeight<Policy>{smoothing_pair(d), smoothing_limited<Policy>(d) ? raw(d.float_tmp) : nullptr};
 }
 
-// Smooths the fields; the budget sums before and after the pass go to the step's StepSums (the change of sum m T
-// it made, kg K, is 0 up to rounding: the pairwise form conserves it). weight_sums_ready: the XSPH pass has
-// written the limiter's S_i (limiter_weight_sums); otherwise the limiter's pass runs here, where needed.
+// Smooths the fields, with the vorticity confinement taken along (confinement, pbf_constraints_launch.h; timed with
+// the smoothing); the change of sum m T the pass made (kg K, 0 up to rounding: the pairwise form conserves it) goes
+// to the step's StepSums. weight_sums_ready: the XSPH pass has written the limiter's S_i (limiter_weight_sums);
+// otherwise the limiter's pass runs here, where needed.
 template <class Policy>
 void smooth_fields(SolverData& d, bool weight_sums_ready) {
     if (!d.smoothing) return;
     StepSums* sums = raw(d.step_sums);
-    reduce_budget_into(d, d.pred, false, false, &sums->before_smoothing);
     d.clock.begin(kPhaseSmoothing);
     dvec<float>* fields[3] = {&d.temperature, &d.vapor, &d.cloud};
     SmoothingFields sf{};
@@ -56,11 +57,12 @@ void smooth_fields(SolverData& d, bool weight_sums_ready) {
             parallel_for(d.n, SmoothingWeightSums<Policy>{d.grid, fluid, d.radii, limiter_weight_sums<Policy>(d)});
         weight_sum = raw(d.float_tmp);
     }
-    parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.atm.env, weight_sum, sf});
+    parallel_for(d.n, SmoothScalars<Policy>{d.grid, fluid, d.radii, pair, d.atm.env, weight_sum, sf, confinement(d)});
+    d.clock.end(kPhaseSmoothing);
+    if (d.p.smooth_fields[0])
+        reduce_into(d.n, SmoothingHeat{raw(d.pred), sf.in[0], sf.out[0]}, 0.0, thrust::plus<double>(), &sums->smoothing_heat);
     for (int k = 0; k < 3; ++k)
         if (d.p.smooth_fields[k]) fields[k]->swap(d.smooth_out[k]);
-    d.clock.end(kPhaseSmoothing);
-    reduce_budget_into(d, d.pred, false, false, &sums->after_smoothing);
 }
 
 }  // namespace PBF_BACKEND_NS

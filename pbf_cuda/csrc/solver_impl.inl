@@ -63,18 +63,19 @@ public:
         d.clock.begin(kPhaseSolver);
         const WallNeighbourhoods walls = d.wall_neighbourhoods();
         solve_density<Policy>(d, walls);             // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
-        narrow_neighbor_lists<Policy>(d);            // x* is final: the lists keep the pairs within support
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
-        // XSPH, viscosity, vorticity confinement; the smoothing limiter's weight sums on the same pairs
-        const bool limiter_ready = viscosity_vorticity<Policy>(d, limiter_weight_sums<Policy>(d));
+        // XSPH, viscosity, vorticity confinement at the final x*; on the same pairs: the lists narrowed to them, the
+        // smoothing limiter's weight sums, the velocity projection's warm start
+        const XsphRiders taken = viscosity_vorticity<Policy>(d, limiter_weight_sums<Policy>(d), walls);
+        if (!taken.narrowed) narrow_neighbor_lists<Policy>(d);   // x* is final: the lists keep the pairs within support
         d.clock.end(kPhaseSolver);
         d.clock.end(kPhasePBF);
 
-        smooth_fields<Policy>(d, limiter_ready);     // temperature smoothing (eq. 12-17)
+        smooth_fields<Policy>(d, taken.pair_sum);    // temperature smoothing (eq. 12-17)
         cloud_dynamics(d);                           // heating .. buoyancy (eq. 5-11, C1-C3)
 
         d.clock.begin(kPhasePBF);
-        project_velocity<Policy>(d, walls);          // v = P(v + dt g), divergence-free at x* (velocity projection)
+        project_velocity<Policy>(d, walls, taken.warm_start);   // v = P(v + dt g), divergence-free at x* (velocity projection)
         d.clock.end(kPhasePBF);
         reduce_budget_into(d, d.pred, true, d.p.thermodynamics, &sums->end);
         d.clock.begin(kPhasePBF);
