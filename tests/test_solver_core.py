@@ -236,9 +236,10 @@ def _list_cases():
 def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
     # The per-step neighbour lists (pbf.neighbor_list) only change which particles a pass looks at: every pass
     # finds the pairs the cell search finds, in the same order, so the runs agree bit for bit on the CPU. On a
-    # GPU the compiler may contract the two loops' arithmetic differently, and rounding differences grow in the
-    # splashing dam break (H100: bitwise equal in the other three cases, 8.6e-5 of a spacing after 25 steps of the
-    # dam break): within 1e-3 of a spacing there.
+    # GPU the compiler may contract the two paths' arithmetic differently (with the lists, the first density
+    # iteration's sums are taken along by the lists' build), and rounding differences grow in the splashing dam
+    # break: H100, bitwise equal in the other three cases; in the dam break 0.016 of a spacing after 25 steps, where
+    # the same run on the CPU is 0.040 of a spacing away. Within 1e-3 of a spacing, and 0.05 in the dam break.
     runs = {}
     for lists in (False, True):
         sim = Simulation(load_scene(name, **overrides, **{"pbf.neighbor_list": lists}), backend=backend, seed=2)
@@ -247,8 +248,9 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
         assert st["neighbor_lists"] is lists          # in use (not given up: far below 2^32 entries)
         if lists:
             # Rows of a fixed width (neighbor_list.h): a multiple of 8, wider than the mean row. The width starts
-            # at 32 and every case here lists more than that for some particle, so the first build widened the
-            # rows and filled them again: the bitwise comparison below covers that path too.
+            # at 32 and every case here lists more than that for some particle, so in the first step rows were cut
+            # at the width and those particles' passes searched the cells, beside the listed ones, before the rows
+            # were widened: the comparison below covers that path too.
             width, mean = st["neighbor_row_width"], st["neighbor_candidates"] / st["n_particles"]
             assert width % 8 == 0 and width > 32 and width >= mean, (width, mean)
         runs[lists] = by_id(sim.state())
@@ -260,7 +262,7 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
         if backend == "cpu":
             assert np.array_equal(scan[key], listed[key]), key
         elif key == "position":
-            assert np.abs(scan[key] - listed[key]).max() < 1e-3 * spacing
+            assert np.abs(scan[key] - listed[key]).max() < (0.05 if name == "dam_break" else 1e-3) * spacing
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -156,6 +156,7 @@ struct StepSums {
     Double2 column;                              // (sum m u_y, sum m) before the column drift's removal
     float shift, drift;                          // the column's vertical shift (m) and drift (m/s) to remove
     Reduced checks;                              // the stability check's sums, where the step is checked
+    ListSize list_size;                          // the neighbour lists' size (neighbor_list.h), where built
 };
 
 }  // namespace pbf

@@ -118,9 +118,12 @@ struct CellRanges {
     const uint32_t* key = nullptr;        // per particle: its nested key as sorted
     // This step's neighbour lists (neighbor_list.h), when the solver keeps them: particle i has nbr_count[i]
     // candidates, the k-th at nbr_index[i * nbr_row + k * nbr_slot], in the order the cell search visits them.
+    // A count above nbr_width is a row cut at the width: that particle's passes search the cells (listed).
     const uint32_t* nbr_count = nullptr;
     const uint32_t* nbr_index = nullptr;
-    uint32_t nbr_row = 0, nbr_slot = 0;
+    uint32_t nbr_row = 0, nbr_slot = 0, nbr_width = 0;
+    // Whether particle i's passes read its list: the lists are kept and its row holds all its candidates.
+    PBF_HD bool listed(uint32_t i) const { return nbr_count && nbr_count[i] <= nbr_width; }
     // Particle i's candidate k (64-bit arithmetic: the lists may hold more than 2^32 entries).
     PBF_HD uint32_t candidate(uint32_t i, uint32_t k) const {
         return nbr_index[std::size_t(i) * nbr_row + std::size_t(k) * nbr_slot];
@@ -163,6 +166,21 @@ PBF_HD inline void for_each_wall_neighbor(const GridGeometry& g, const WallNeigh
         for (uint32_t b = 0; b < kBatch; ++b) visit(pb[b]);
     }
     for (; k < e; ++k) visit(walls.pos[k]);
+}
+
+// Calls f(j, r, r2) for the particles j = b, b + stride, ... below e of a cell's (or sub-cell's) range with
+// r2 = |x_i - x_j|^2 < r2max (minimum image), in index order. One position at a time: reading four at a time, as
+// the lists' passes do (kernel_policy.h: kListBatch), made every list pass slower (ApplyJT 8% in ncu, H100): this
+// search is compiled into each of them as the fallback where no lists are kept, and its registers count there too.
+template <class F>
+PBF_HD inline void for_each_in_range(const GridGeometry& g, const Float4* pos, uint32_t b, uint32_t e,
+                                     uint32_t stride, Vec3 q, float r2max, F&& f) {
+    for (uint32_t j = b; j < e; j += stride) {
+        const Float4 pj = pos[j];
+        Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+        float r2 = dot(r, r);
+        if (r2 < r2max) f(j, r, r2);
+    }
 }
 
 // ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------
@@ -244,13 +262,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
                 float hc = set.cell_radius[cell];
                 if (!(fine_i && hc <= sub_side)) {   // cell mode
                     float rc = fmaxf(hc_i, hc) + skin;
-                    float rc2 = rc * rc;
-                    for (uint32_t j = b; j < en; ++j) {
-                        Float4 pj = set.pos[j];
-                        Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-                        float r2 = dot(r, r);
-                        if (r2 < rc2) f(j, r, r2);
-                    }
+                    for_each_in_range(g, set.pos, b, en, 1u, q, rc * rc, f);
                     continue;
                 }
                 for (uint32_t s = 0; s < kSubCells; ++s) {   // sub-cell mode
@@ -261,12 +273,7 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
                     float rs2 = hs * hs;
                     float es = gap2(0, dx, int(s & 1u)) + gap2(1, dy, int((s >> 1) & 1u)) + gap2(2, dz, int(s >> 2));
                     if (es >= rs2) continue;
-                    for (uint32_t j = sb; j < se; ++j) {
-                        Float4 pj = set.pos[j];
-                        Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-                        float r2 = dot(r, r);
-                        if (r2 < rs2) f(j, r, r2);
-                    }
+                    for_each_in_range(g, set.pos, sb, se, 1u, q, rs2, f);
                 }
             }
         }
@@ -310,13 +317,7 @@ PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRa
                 else if (cx < 0 || cx >= g.dims[0]) continue;
                 if (ey + gap2(0, dx) >= r2prune) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
-                uint32_t b = set.start[cell], e = set.end[cell];
-                for (uint32_t j = b + first; j < e; j += stride) {
-                    Float4 pj = set.pos[j];
-                    Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-                    float r2 = dot(r, r);
-                    if (r2 < r2max) f(j, r, r2);
-                }
+                for_each_in_range(g, set.pos, set.start[cell] + first, set.end[cell], stride, q, r2max, f);
             }
         }
     }

@@ -125,69 +125,59 @@ inline void build_neighbor_grid(SolverData& d) {
                                                        raw(d.cell_start), raw(d.cell_end), raw(d.cell_radius)});
 }
 
-// The sum (widened so that it cannot wrap) and the largest of the particles' candidate counts.
-struct ListSize {
-    unsigned long long total;
-    uint32_t longest;
-};
-struct ListSizeOf {
-    const uint32_t* count;
-    PBF_HD ListSize operator()(uint32_t i) const { return ListSize{count[i], count[i]}; }
-};
-struct ListSizeAdd {
-    PBF_HD ListSize operator()(const ListSize& a, const ListSize& b) const {
-        return ListSize{a.total + b.total, a.longest > b.longest ? a.longest : b.longest};
-    }
-};
-
 #ifdef PBF_BACKEND_CUDA
 constexpr bool kSlotMajorLists = true;    // a warp's 32 particles read slot k of their rows together
 #else
 constexpr bool kSlotMajorLists = false;   // a thread walks its particle's row
 #endif
 
-// This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores
-// each particle's candidates in rows of the current width; one reduction (read by the host) gives their total
-// and the longest row. A row longer than the width widens the rows (to the longest plus an eighth, rounded up
-// to 8) and fills them again; a width that grew stays. Rows of n x width entries that would exceed 2^32 - 1 entries
-// (about 75M particles at a width of 56) or cannot be allocated give the lists up for the rest of the run: the
-// passes search the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
-template <class Policy>
-void build_neighbor_lists(SolverData& d) {
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores each
+// particle's candidates in rows of the current width, and one reduction sums their total and the longest row into
+// the step's sums, which the host reads after the step (take_list_size): the step never waits for it. A row longer
+// than the width is cut at the width, and that particle's passes search the cells for the rest of the step
+// (CellRanges::listed: the same pairs in the same order); the rows are widened for the next step (to the longest
+// plus an eighth, rounded up to 8), and a width that grew stays. Rows of n x width entries that would exceed
+// 2^32 - 1 entries (about 75M particles at a width of 56) or cannot be allocated give the lists up for the rest of
+// the run: the passes search the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
+// pair_sum: a sum the build takes along (FillNeighbors; NoPairSum: none). Returns whether it was taken: the lists
+// were built.
+template <class Policy, class PairSum>
+bool build_neighbor_lists(SolverData& d, const PairSum& pair_sum) {
     d.lists_ready = false;
-    if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return;
-    CellRanges fl = d.fluid_ranges(d.pred);
-    const float skin = kNeighborSkin * d.p.h0;
+    if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return false;
     const uint32_t n = uint32_t(d.n);
-    for (int attempt = 0; attempt < 2; ++attempt) {
-        const unsigned long long entries = (unsigned long long)(n) * d.nbr_width;
-        if (entries > 0xffffffffull) {
-            d.give_up_lists();
-            return;
-        }
-        if (entries > d.nbr_index.size()) {
-            try {
-                d.nbr_index.clear();
-                d.nbr_index.shrink_to_fit();
-                d.nbr_index.resize(std::size_t(entries));
-            } catch (const std::bad_alloc&) {
-                d.give_up_lists();
-                return;
-            }
-        }
-        const uint32_t row = kSlotMajorLists ? 1u : d.nbr_width, slot = kSlotMajorLists ? n : 1u;
-        parallel_for(n, FillNeighbors<Policy>{d.grid, fl, d.radii, d.p.h0, skin, d.nbr_width, row, slot,
-                                              raw(d.nbr_count), raw(d.nbr_index)});
-        const ListSize size = reduce_over(n, ListSizeOf{raw(d.nbr_count)}, ListSize{0ull, 0u}, ListSizeAdd{});
-        d.list_entries = size.total;
-        if (size.longest <= d.nbr_width) {
-            d.nbr_row = row;
-            d.nbr_slot = slot;
-            d.lists_ready = true;
-            return;
-        }
-        d.nbr_width = (size.longest + size.longest / 8 + 7u) / 8u * 8u;
+    const unsigned long long entries = (unsigned long long)(n) * d.nbr_width;
+    if (entries > 0xffffffffull) {
+        d.give_up_lists();
+        return false;
     }
+    if (entries > d.nbr_index.size()) {
+        try {
+            d.nbr_index.clear();
+            d.nbr_index.shrink_to_fit();
+            d.nbr_index.resize(std::size_t(entries));
+        } catch (const std::bad_alloc&) {
+            d.give_up_lists();
+            return false;
+        }
+    }
+    d.nbr_row = kSlotMajorLists ? 1u : d.nbr_width;
+    d.nbr_slot = kSlotMajorLists ? n : 1u;
+    const float skin = kNeighborSkin * d.p.h0;
+    parallel_for(n, FillNeighbors<Policy, PairSum>{d.grid, d.fluid_ranges(d.pred), d.radii, d.p.h0, skin, d.nbr_width,
+                                                   d.nbr_row, d.nbr_slot, raw(d.nbr_count), raw(d.nbr_index), pair_sum});
+    reduce_into(n, ListSizeOf{raw(d.nbr_count)}, ListSize{0ull, 0u}, ListSizeAdd{}, &raw(d.step_sums)->list_size);
+    d.lists_ready = true;
+    d.list_size_pending = true;
+    return true;
+}
+
+// After the step: the lists' size from its sums; rows too narrow for some particle are widened for the next build.
+inline void take_list_size(SolverData& d, const ListSize& size) {
+    if (!d.list_size_pending) return;
+    d.list_size_pending = false;
+    d.list_entries = size.total;
+    if (size.longest > d.nbr_width) d.nbr_width = (size.longest + size.longest / 8 + 7u) / 8u * 8u;
 }
 
 }  // namespace PBF_BACKEND_NS

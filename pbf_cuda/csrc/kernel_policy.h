@@ -135,7 +135,7 @@ PBF_HD inline bool supported_pair(const GridGeometry& g, const LevelRadii& radii
 template <class Policy, class F>
 PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
                                            float h0, uint32_t i, Vec3 q, F&& f) {
-    if (fluid.nbr_count) {
+    if (fluid.listed(i)) {
         const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
         auto visit = [&](uint32_t j, const Float4& pj) {
             Vec3 r;

@@ -10,7 +10,9 @@
 // are stored slot-major (candidate k of particle i at k n + i): the 32 lanes of a warp, 32 consecutive
 // particles, read and write slot k of their rows in one coalesced transaction. On the CPU they are row-major
 // (i W + k): one thread walks one particle's row through the cache. W is the longest row a build found (plus an
-// eighth, rounded up to 8); a build that finds a row longer than W widens the rows and fills them again.
+// eighth, rounded up to 8). A row longer than W is cut at W, and that particle's passes search the cells for the
+// rest of the step (CellRanges::listed); the rows are widened for the next step (grid_launch.h). So the step never
+// waits for the lists' size: it is read with the step's other sums after the step.
 // Measured against the compressed rows with a counting pass that they replace: docs/benchmarks.md.
 //
 // The passes keep the search's own test (|r| below the pair's support) on the positions they see, so the lists
@@ -55,8 +57,36 @@ PBF_HD inline void for_each_list_candidate(const GridGeometry& grid, const CellR
     });
 }
 
-// count[i] = the candidates of particle i; the first `width` of them stored in its row, in search order.
-template <class Policy>
+// The sum (widened so that it cannot wrap) and the largest of the particles' candidate counts: the lists' size,
+// summed after their build into the step's sums (grid_launch.h: build_neighbor_lists).
+struct ListSize {
+    unsigned long long total;
+    uint32_t longest;
+};
+struct ListSizeOf {
+    const uint32_t* count;
+    PBF_HD ListSize operator()(uint32_t i) const { return ListSize{count[i], count[i]}; }
+};
+struct ListSizeAdd {
+    PBF_HD ListSize operator()(const ListSize& a, const ListSize& b) const {
+        return ListSize{a.total + b.total, a.longest > b.longest ? a.longest : b.longest};
+    }
+};
+
+// A sum over the pairs that the lists' build takes along (FillNeighbors): Sums, add(sums, i, j, r, r2, h_i, m_j, h_j)
+// for each candidate within its pair's support (i itself included, r2 = 0), in the order the row stores them, which
+// is the order in which a list pass would visit them (kernel_policy.h: for_each_fluid_neighbor), then
+// finish(sums, i, x_i, m_i, h_i). NoPairSum: none (the plain build).
+struct NoPairSum {
+    struct Sums {};
+    static constexpr bool kActive = false;
+    PBF_HD void add(Sums&, uint32_t, uint32_t, Vec3, float, float, float, float) const {}
+    PBF_HD void finish(Sums&, uint32_t, Vec3, float, float) const {}
+};
+
+// count[i] = the candidates of particle i; the first `width` of them stored in its row, in search order; the pair sum
+// taken along, where there is one.
+template <class Policy, class PairSum = NoPairSum>
 struct FillNeighbors {
     GridGeometry grid;
     CellRanges fluid;
@@ -65,13 +95,29 @@ struct FillNeighbors {
     uint32_t width, row, slot;   // row i starts at index + i row; slot k is k slot further
     uint32_t* count;
     uint32_t* index;
+    PairSum pair_sum;
     PBF_HD void operator()(uint32_t i) const {
         uint32_t c = 0;
         uint32_t* out = index + std::size_t(i) * row;
-        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) {
-            if (c < width) out[std::size_t(c) * slot] = j;
-            ++c;
-        });
+        if constexpr (!PairSum::kActive) {
+            for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) {
+                if (c < width) out[std::size_t(c) * slot] = j;
+                ++c;
+            });
+        } else {
+            const Float4 pi = fluid.pos[i];
+            const float hi = Policy::radius(radii, h0, pi.w);
+            typename PairSum::Sums sums{};
+            Policy::for_each_candidate(grid, fluid, i, xyz(pi), h0, skin, [&](uint32_t j, Vec3 r, float r2) {
+                const float mj = fluid.pos[j].w;
+                const float hj = Policy::radius(radii, h0, mj);
+                if (!Policy::within_support(r2, hi, hj, skin)) return;   // for_each_list_candidate's test
+                if (c < width) out[std::size_t(c) * slot] = j;
+                ++c;
+                if (within_radius(r2, Policy::support(hi, hj), 0.0f)) pair_sum.add(sums, i, j, r, r2, hi, mj, hj);
+            });
+            pair_sum.finish(sums, i, xyz(pi), pi.w, hi);
+        }
         count[i] = c;
     }
 };
@@ -105,6 +151,7 @@ struct NarrowNeighbors {
     float h0;
     RowNarrowing narrowing;
     PBF_HD void operator()(uint32_t i) const {
+        if (!fluid.listed(i)) return;   // a row cut at the width stays as it is: its passes search the cells
         RowNarrowing::Cursor c = narrowing.begin(i);
         for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xyz(fluid.pos[i]),
                                         [&](uint32_t j, Vec3, float, float, float) { narrowing.keep(c, j); });

@@ -138,7 +138,9 @@ struct WarmStartImpulse {
     }
 };
 
-// Density (eq. 1, 18) and lambda (eq. 4) of fluid particle i.
+// Density (eq. 1, 18) and lambda (eq. 4) of fluid particle i. Its sums (add, finish) are also taken along by the
+// lists' build, which finds the pairs of the first density iteration in the order the lists will hold them
+// (neighbor_list.h: FillNeighbors), so that iteration needs no pass of its own.
 template <class Policy>
 struct DensityLambda {
     GridGeometry grid;
@@ -148,27 +150,38 @@ struct DensityLambda {
     ConstraintParams cp;
     float* lambda;
     float* density;
+    struct Sums {
+        float rho = 0.0f;
+        JacobianRow row;
+    };
+    static constexpr bool kActive = true;
+    // fluid pair (i, j) within its support, i itself included (r2 = 0)
+    PBF_HD void add(Sums& s, uint32_t i, uint32_t j, Vec3 r, float r2, float hi, float mj, float hj) const {
+        s.rho += mj * Policy::W(r2, hi, hj);
+        if (j != i) s.row.add_fluid(Policy::grad_W(r, r2, hi, hj), mj, cp.inv_rest_density);
+    }
+    // the walls (for_each_constraint_neighbor's order: after the fluid pairs), then lambda and the density
+    PBF_HD void finish(Sums& s, uint32_t i, Vec3 xi, float mi, float hi) const {
+        if (walls.offset && near_wall(grid, xi, cp.h0))
+            for_each_wall_neighbor<kListBatch>(grid, walls, xi, cp.h0, [&](Vec3 r, float r2, float mb) {
+                s.rho += mb * Policy::W(r2, hi, cp.h0);
+                s.row.add_wall(Policy::grad_W(r, r2, hi, cp.h0), mb, cp.inv_rest_density);
+            });
+        float c = s.rho * cp.inv_rest_density - 1.0f;
+        if (cp.unilateral && c < 0.0f) c = 0.0f;
+        float denom = s.row.diagonal(mi) + cp.relaxation;
+        lambda[i] = denom > 0.0f ? -c / denom : 0.0f;
+        density[i] = s.rho;
+    }
     PBF_HD void operator()(uint32_t i) const {
         Float4 pi = fluid.pos[i];
         Vec3 xi = xyz(pi);
         float mi = pi.w;
         float hi = Policy::radius(radii, cp.h0, mi);
-        float rho = 0.0f;
-        JacobianRow row;
-        for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
-            [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
-                rho += mj * Policy::W(r2, hi, hj);
-                if (j != i) row.add_fluid(Policy::grad_W(r, r2, hi, hj), mj, cp.inv_rest_density);
-            },
-            [&](Vec3 r, float r2, float mb) {
-                rho += mb * Policy::W(r2, hi, cp.h0);
-                row.add_wall(Policy::grad_W(r, r2, hi, cp.h0), mb, cp.inv_rest_density);
-            });
-        float c = rho * cp.inv_rest_density - 1.0f;
-        if (cp.unilateral && c < 0.0f) c = 0.0f;
-        float denom = row.diagonal(mi) + cp.relaxation;
-        lambda[i] = denom > 0.0f ? -c / denom : 0.0f;
-        density[i] = rho;
+        Sums s;
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, cp.h0, i, xi,
+            [&](uint32_t j, Vec3 r, float r2, float mj, float hj) { add(s, i, j, r, r2, hi, mj, hj); });
+        finish(s, i, xi, mi, hi);
     }
 };
 
@@ -298,6 +311,15 @@ struct ApplyJ {
     }
 };
 
+// x^n for n >= 1 as the product ((x x) x) ... in that order; n = 4, the default pbf.scorr_n, without the loop (a
+// uniform branch: n is the run's), which every pair of a PositionCorrection pass would otherwise run.
+PBF_HD inline float repeated_product(float x, int n) {
+    if (n == 4) return x * x * x * x;
+    float p = x;
+    for (int k = 1; k < n; ++k) p *= x;
+    return p;
+}
+
 // Position correction dp_i (Macklin eq. 12-14, with the tensile term s_corr) applied to the
 // predicted position; writes into a second buffer (Jacobi iteration), clamps to the walls.
 template <class Policy>
@@ -325,9 +347,7 @@ struct PositionCorrection {
             if (cp.scorr_k_lambda > 0.0f && !(fine_pair && cp.scorr_fine == 0.0f)) {
                 float ratio = fine_pair ? Policy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq)
                                         : UniformPolicy::tensile_ratio(r2, hi, hj, cp.scorr_dq, cp.scorr_inv_wdq);
-                float p = ratio;
-                for (int k = 1; k < cp.scorr_n; ++k) p *= ratio;
-                s = -cp.scorr_k_lambda * p;
+                s = -cp.scorr_k_lambda * repeated_product(ratio, cp.scorr_n);
                 if (fine_pair) s = Policy::tensile_scale(s, hi, hj, cp.h0) * cp.scorr_fine;
             }
             return li * mj / mi + lambda[j] + s;
@@ -388,10 +408,11 @@ struct ViscosityVorticity {
         const bool warm = warm_start.out != nullptr;
         const float mu_i = warm ? warm_start.mu[i] : 0.0f;
         Vec3 impulse{0, 0, 0};
+        const bool narrow = narrowing.count && fluid.listed(i);   // a row cut at the width stays as it is
         RowNarrowing::Cursor kept{};
-        if (narrowing.count) kept = narrowing.begin(i);
+        if (narrow) kept = narrowing.begin(i);
         for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
-            if (narrowing.count) narrowing.keep(kept, j);
+            if (narrow) narrowing.keep(kept, j);
             if (j == i) return;
             if (pair_sum.out) summed += pair_sum(r, r2, hi, hj, mj);
             float vol = mj / density[j];
@@ -407,7 +428,7 @@ struct ViscosityVorticity {
         vel_out[i] = make_float4(vi + xsph * visc + nu_dt * lap, 0.0f);
         if (want_vorticity) omega[i] = make_float4(w, length(w));
         if (pair_sum.out) pair_sum.out[i] = summed;
-        if (narrowing.count) narrowing.finish(i, kept);
+        if (narrow) narrowing.finish(i, kept);
         if (warm) warm_start.finish(grid, i, xi, hi, mu_i, mi, impulse);
     }
 };

@@ -230,10 +230,18 @@ struct VerticalShift {
     }
 };
 
+// The first density iteration's sums (DensityLambda at x* as predicted), for the lists' build to take along
+// (build_neighbor_lists, FillNeighbors): that iteration then needs no pass of its own (solve_density).
+template <class Policy>
+DensityLambda<Policy> first_density_sums(SolverData& d, const WallNeighbourhoods& walls) {
+    return DensityLambda<Policy>{d.grid, d.fluid_ranges(d.pred), walls, d.radii, d.cp, raw(d.lambda), raw(d.density)};
+}
+
 // Density constraint iterations on the predicted positions (eq. 1-4, 18). With pbf.shift_keeps_anomaly the
 // vertical shift they give each particle is kept (d.shift_y) for the cloud dynamics (thermodynamics.h).
+// first_summed: the lists' build has summed the first iteration's density and lambda (first_density_sums).
 template <class Policy>
-void solve_density(SolverData& d, const WallNeighbourhoods& walls) {
+void solve_density(SolverData& d, const WallNeighbourhoods& walls, bool first_summed) {
     const bool keep_shift = !d.shift_y.empty();
     if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
     // pbf.remove_shift_drift: the solve's net vertical shift sum m dy / sum m is the closed column's rigid mode
@@ -245,7 +253,8 @@ void solve_density(SolverData& d, const WallNeighbourhoods& walls) {
         reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_before);
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
-        parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
+        if (!(it == 0 && first_summed))
+            parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }

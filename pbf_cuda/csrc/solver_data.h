@@ -40,6 +40,7 @@ struct SolverData {
     uint32_t nbr_width = 32;              // the lists' row width (grows to the longest row seen, grid_launch.h)
     uint32_t nbr_row = 0, nbr_slot = 0;   // their layout: candidate k of particle i at i nbr_row + k nbr_slot
     bool lists_ready = false;             // the lists belong to this step's sorted particles
+    bool list_size_pending = false;       // their size is in this step's sums (grid_launch.h: take_list_size)
     bool lists_given_up = false;          // more than 2^32 - 1 entries, or no memory (grid_launch.h)
     unsigned long long list_entries = 0;  // candidates in the last lists built
     void give_up_lists() {
@@ -82,6 +83,7 @@ struct SolverData {
             r.nbr_index = raw(nbr_index);
             r.nbr_row = nbr_row;
             r.nbr_slot = nbr_slot;
+            r.nbr_width = nbr_width;
         }
         return r;
     }

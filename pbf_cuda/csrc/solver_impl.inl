@@ -54,15 +54,17 @@ public:
         StepSums* sums = raw(d.step_sums);
         reduce_budget_into(d, d.pos, false, false, &sums->start);
 
+        const WallNeighbourhoods walls = d.wall_neighbourhoods();
         d.clock.begin(kPhasePBF);
         d.clock.begin(kPhaseNeighbors);
         predict_positions(d);                        // x* = x + dt (v + dt g)
         build_neighbor_grid(d);                      // sort by the cell of x*, cell ranges
-        build_neighbor_lists<Policy>(d);             // each particle's candidates, once per step
+        // each particle's candidates, once per step; on the way, the first density iteration's rho and lambda
+        const bool first_summed = d.p.iterations > 0 ? build_neighbor_lists<Policy>(d, first_density_sums<Policy>(d, walls))
+                                                     : build_neighbor_lists<Policy>(d, NoPairSum{});
         d.clock.end(kPhaseNeighbors);
         d.clock.begin(kPhaseSolver);
-        const WallNeighbourhoods walls = d.wall_neighbourhoods();
-        solve_density<Policy>(d, walls);             // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
+        solve_density<Policy>(d, walls, first_summed);   // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
         // XSPH, viscosity, vorticity confinement at the final x*; on the same pairs: the lists narrowed to them, the
         // smoothing limiter's weight sums, the velocity projection's warm start
@@ -154,6 +156,7 @@ public:
             if (err != cudaSuccess) return std::string("cuda|") + cudaGetErrorString(err);
 #endif
             record_budget(d_, sums);
+            take_list_size(d_, sums.list_size);
             if (checked) {
                 std::string failure = check(d_, sums.checks);
                 if (!failure.empty()) return failure;
