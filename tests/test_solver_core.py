@@ -243,16 +243,20 @@ def test_neighbour_lists_give_the_cell_search_results(backend, name, overrides):
     runs = {}
     for lists in (False, True):
         sim = Simulation(load_scene(name, **overrides, **{"pbf.neighbor_list": lists}), backend=backend, seed=2)
-        sim.step(25)
+        sim.step(1)
+        first_width = sim.stats()["neighbor_row_width"]
+        sim.step(24)
         st = sim.stats()
         assert st["neighbor_lists"] is lists          # in use (not given up: far below 2^32 entries)
         if lists:
             # Rows of a fixed width (neighbor_list.h): a multiple of 8, wider than the mean row. The width starts
-            # at 32 and every case here lists more than that for some particle, so in the first step rows were cut
-            # at the width and those particles' passes searched the cells, beside the listed ones, before the rows
-            # were widened: the comparison below covers that path too.
+            # at 32 and every case here lists more than that for some particle, so the first build widened the
+            # rows and filled them again; and in some later step a row outgrew the width, so it was cut and that
+            # particle's passes searched the cells for the step, beside the listed ones, before the rows were
+            # widened again (a width that grew after the first step): the comparison below covers both paths.
             width, mean = st["neighbor_row_width"], st["neighbor_candidates"] / st["n_particles"]
             assert width % 8 == 0 and width > 32 and width >= mean, (width, mean)
+            assert width > first_width, (first_width, width)
         runs[lists] = by_id(sim.state())
     scan, listed = runs[False], runs[True]
     assert scan.keys() == listed.keys() and len(scan["id"]) == len(listed["id"])

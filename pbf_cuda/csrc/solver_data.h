@@ -41,6 +41,7 @@ struct SolverData {
     uint32_t nbr_row = 0, nbr_slot = 0;   // their layout: candidate k of particle i at i nbr_row + k nbr_slot
     bool lists_ready = false;             // the lists belong to this step's sorted particles
     bool list_size_pending = false;       // their size is in this step's sums (grid_launch.h: take_list_size)
+    bool list_width_settled = false;      // the run's first build has set the width (grid_launch.h)
     bool lists_given_up = false;          // more than 2^32 - 1 entries, or no memory (grid_launch.h)
     unsigned long long list_entries = 0;  // candidates in the last lists built
     void give_up_lists() {
