@@ -154,7 +154,7 @@ struct StepSums {
     double shift_heat;                           // the density solve's heat booked by the kept shift, kg K
     Double2 shift_before, shift_after;           // (sum m y, sum m) around the density iterations
     Double2 column;                              // (sum m u_y, sum m) before the column drift's removal
-    float shift, drift;                          // the column's vertical shift (m) and drift (m/s) to remove
+    float shift;                                 // the column's vertical shift to remove, m
     Reduced checks;                              // the stability check's sums, where the step is checked
     ListSize list_size;                          // the neighbour lists' size (neighbor_list.h), where built
 };

@@ -33,6 +33,21 @@ inline void reduce_budget_into(const SolverData& d, const dvec<Float4>& position
                 BudgetAdd{}, out);
 }
 
+// The step's start sums over the fluid at x. The start needs what the last step's end summed (at x*, which the commit
+// made x) wherever nothing has changed the particles since: no merge or split, no state set from the host, no wrap
+// on the vertical axis (d.end_budget_is_next_start). Then the end record serves (bitwise the same sums: the same
+// particles in the same order; record_budget reads only its mass, height and water sums) and the step makes one
+// reduction over the particles fewer.
+struct StartFromEnd {
+    StepSums* s;
+    PBF_HD void operator()() const { s->start = s->end; }
+};
+inline void start_budget(SolverData& d) {
+    StepSums* sums = raw(d.step_sums);
+    if (d.end_budget_is_next_start) run_once(StartFromEnd{sums});
+    else reduce_budget_into(d, d.pos, false, false, &sums->start);
+}
+
 // The state's totals (no process has acted yet: every heat term 0).
 inline void budget_state(StepBudget& b, const BudgetSums& now) {
     b.valid = true;

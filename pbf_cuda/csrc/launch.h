@@ -5,7 +5,7 @@
 //   parallel_for(n, f)          f(i) for i in [0, n): one CUDA thread per item, or a Thrust for_each (OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
-//   reduce_into(n, f, init, op, out)  the same into *out in device memory: the host does not wait (CUB)
+//   reduce_into(n, f, init, op, out)  the same into *out in device memory: the host does not wait (one launch)
 //   run_once(f)                 f() once: a one-thread kernel on the GPU (scalar work on device memory)
 //   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
 //
@@ -164,18 +164,80 @@ T reduce_over(std::size_t n, const F& f, T init, Op op) {
                                     thrust::counting_iterator<uint32_t>(uint32_t(n)), f, init, op);
 }
 
-// The same reduction written to *out (device memory) without the host waiting for it: on the GPU CUB's
-// DeviceReduce over the transformed range (a fixed tree, no atomics: the same value on every run), with its
-// temporary storage from the caching allocator; on the CPU the value itself.
+// The same reduction written to *out (device memory) without the host waiting for it. On the GPU one launch
+// (reduce_kernel below) instead of CUB's DeviceReduce, which takes two at these sizes: a step makes ~15 reductions
+// (the conjugate gradients' dots, the budget, the check), and the second launch of each cost more than its work.
+// init must be op's identity (every sum here starts from 0, the check from its empty record). On the CPU the value
+// itself.
+#ifdef PBF_BACKEND_CUDA
+// One-launch reduction in a fixed order, so the same value on every run (no floating-point atomics): each of at
+// most kReduceBlocks blocks reduces its items (item i in block (i / 256) mod blocks, thread i mod 256, in index
+// order) and its threads in a fixed tree, writes its partial, and the block that finishes last (a counter in device
+// memory, reset by that block) reduces the partials in the same tree. The number of blocks depends on n only.
+constexpr unsigned kReduceThreads = 256;
+constexpr unsigned kReduceBlocks = 1024;
+__device__ unsigned int reduce_blocks_done = 0;
+
+// A T read past the L1 cache (the partials other blocks wrote; their writes are fenced before the counter).
+template <class T>
+__device__ inline T load_from_l2(const T* p) {
+    static_assert(sizeof(T) % 4 == 0, "reduce_into: the reduced type's size must be a multiple of 4 bytes");
+    T v;
+    const unsigned* src = reinterpret_cast<const unsigned*>(p);
+    unsigned* dst = reinterpret_cast<unsigned*>(&v);
+    for (unsigned k = 0; k < sizeof(T) / 4; ++k) dst[k] = __ldcg(src + k);
+    return v;
+}
+
+// Reduces the kReduceThreads values of a block held in shared memory s (a fixed tree); the result in s[0].
+template <class T, class Op>
+__device__ inline void reduce_block(T* s, Op op) {
+    for (unsigned w = kReduceThreads / 2; w > 0; w >>= 1) {
+        if (threadIdx.x < w) s[threadIdx.x] = op(s[threadIdx.x], s[threadIdx.x + w]);
+        __syncthreads();
+    }
+}
+
+template <class F, class T, class Op>
+__global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f, T init, Op op, T* partial, T* out) {
+    __shared__ alignas(T) unsigned char storage[sizeof(T) * kReduceThreads];
+    __shared__ bool last;
+    T* s = reinterpret_cast<T*>(storage);
+    const unsigned t = threadIdx.x;
+    T acc = init;
+    for (std::size_t i = std::size_t(blockIdx.x) * kReduceThreads + t; i < n; i += std::size_t(gridDim.x) * kReduceThreads)
+        acc = op(acc, f(uint32_t(i)));
+    s[t] = acc;
+    __syncthreads();
+    reduce_block(s, op);
+    if (t == 0) {
+        partial[blockIdx.x] = s[0];
+        __threadfence();
+        last = atomicAdd(&reduce_blocks_done, 1u) == gridDim.x - 1;
+    }
+    __syncthreads();
+    if (!last) return;
+    __threadfence();
+    acc = init;
+    for (unsigned b = t; b < gridDim.x; b += kReduceThreads) acc = op(acc, load_from_l2(partial + b));
+    s[t] = acc;
+    __syncthreads();
+    reduce_block(s, op);
+    if (t == 0) {
+        *out = s[0];
+        reduce_blocks_done = 0;
+    }
+}
+#endif
+
 template <class T, class F, class Op>
 void reduce_into(std::size_t n, const F& f, T init, Op op, T* out) {
 #ifdef PBF_BACKEND_CUDA
-    auto in = thrust::make_transform_iterator(thrust::counting_iterator<uint32_t>(0), f);
-    std::size_t bytes = 0;
-    cub::DeviceReduce::Reduce(nullptr, bytes, in, out, static_cast<long long>(n), op, init);
-    bytes = bytes < 16 ? 16 : bytes;
+    const std::size_t wanted = (n + kReduceThreads - 1) / kReduceThreads;
+    const unsigned blocks = unsigned(wanted < 1 ? 1 : (wanted > kReduceBlocks ? kReduceBlocks : wanted));
+    const std::size_t bytes = sizeof(T) * blocks;
     char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
-    cub::DeviceReduce::Reduce(tmp, bytes, in, out, static_cast<long long>(n), op, init);
+    reduce_kernel<<<blocks, kReduceThreads>>>(uint32_t(n), f, init, op, reinterpret_cast<T*>(tmp), out);
     temp_allocator().deallocate(tmp, bytes);
 #else
     *out = reduce_over(n, f, init, op);

@@ -281,6 +281,8 @@ struct ApplyJ {
     float* diag;               // nullptr: not written
     const float* correction;   // L, read when Corrected
     const int* stop = nullptr; // *stop set: nothing to do (the conjugate gradients have stopped)
+    // Where set (the first call, with diag): the conjugate gradients' start r = -J u, p = D^-1 r, with r in q.
+    float* start_direction = nullptr;
     PBF_HD void operator()(uint32_t i) const {
         if (stop && *stop) return;
         Float4 pi = fluid.pos[i];
@@ -306,7 +308,15 @@ struct ApplyJ {
                 div += mb * dot(ui, gw);
                 if (diag) row.add_wall(gw, mb, cp.inv_rest_density);
             });
-        q[i] = div * cp.inv_rest_density;
+        const float qi = div * cp.inv_rest_density;
+        if (start_direction) {
+            const float ri = -qi, di = row.diagonal(mi);
+            q[i] = ri;
+            diag[i] = di;
+            start_direction[i] = di > 0.0f ? ri / di : 0.0f;
+            return;
+        }
+        q[i] = qi;
         if (diag) diag[i] = row.diagonal(mi);
     }
 };
@@ -501,8 +511,9 @@ struct Double2Add {
 // direction's weight, and the vector kernels read them, so the host never waits for a dot product.
 struct CgState {
     double rz;          // r . z of the current residual (z = D^-1 r)
-    Double2 dots;       // the last reduction: (p . A p, p . D p) or (r . z, r . r)
-    float alpha, beta;  // the step along p, the weight of the old direction in the new one
+    Double2 dots;       // the residual's last reduction: (r . z, r . r)
+    Double2 direction;  // the direction's last reduction: (p . A p, p . D p)
+    float beta;         // the weight of the old direction in the new one (the step along p: CgUpdate)
     int stop;           // 1: converged or stalled; the remaining iterations leave v and mu as they are
 };
 
@@ -533,15 +544,16 @@ struct VerticalMomentum {
     }
 };
 
-// u_y -= drift, m/s (read from device memory; no change where the column has no mass).
+// u_y -= drift = sum m u_y / sum m, m/s, from the sums in device memory (each thread forms the same drift; no change
+// where the column has no mass).
 struct RemoveVerticalDrift {
     Float4* vel;
-    const float* drift;
-    const Double2* mass_sums;   // .y: sum m
+    const Double2* column;   // (sum m u_y, sum m)
     PBF_HD void operator()(uint32_t i) const {
-        if (!(mass_sums->y > 0.0)) return;
+        if (!(column->y > 0.0)) return;
+        const float drift = float(column->x / column->y);
         Float4 u = vel[i];
-        vel[i] = Float4{u.x, u.y - *drift, u.z, u.w};
+        vel[i] = Float4{u.x, u.y - drift, u.z, u.w};
     }
 };
 

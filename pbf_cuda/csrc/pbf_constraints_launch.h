@@ -46,18 +46,10 @@ struct UpdateVelocity {
     }
 };
 
-// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner). The scalars
+// Conjugate-gradient helpers of the velocity projection (z = r / diag is the Jacobi preconditioner; the start
+// r = -J v, p = z is written by the first ApplyJ, pbf_constraints.h). The scalars
 // live in a CgState in device memory (pbf_constraints.h); the vector kernels read them and do nothing once
 // state->stop is set.
-struct CgStart {
-    float* r;
-    const float* diag;
-    float* p;
-    PBF_HD void operator()(uint32_t i) const {
-        r[i] = -r[i];
-        p[i] = diag[i] > 0.0f ? r[i] / diag[i] : 0.0f;
-    }
-};
 // (a . b, c . d) in double.
 struct CgDots {
     const float *a, *b, *c, *d;
@@ -105,28 +97,29 @@ struct CgBegin {
         s->stop = !(s->rz > 0.0) || (tol2 > 0.0 && s->dots.y <= tol2);
     }
 };
-// alpha = rz / p.A p. A direction whose Rayleigh quotient p.A p / p.D p is tiny lies in the near-null space of A
-// (modes the SPH divergence barely sees); float32 matrix products cannot resolve it, and a step along it would
-// be huge and arbitrary: stop there.
-struct CgStepSize {
-    CgState* s;
-    PBF_HD void operator()() const {
-        if (s->stop) return;
-        if (!(s->dots.x > 1e-5 * s->dots.y)) s->stop = 1;
-        else s->alpha = float(s->rz / s->dots.x);
-    }
-};
-// beta = rz_new / rz for the next direction; stop where the new residual is below the tolerance.
+// A direction whose Rayleigh quotient p.A p / p.D p is tiny lies in the near-null space of A (modes the SPH
+// divergence barely sees); float32 matrix products cannot resolve it, and a step along it would be huge and
+// arbitrary: no step is taken along it (CgUpdate), and the solve stops there (CgNextDirection).
+PBF_HD inline bool cg_step_resolved(const Double2& direction) { return direction.x > 1e-5 * direction.y; }
+
+// beta = rz_new / rz for the next direction; stop where the last direction was not resolved or the new residual is
+// below the tolerance.
 struct CgNextDirection {
     CgState* s;
     double tol2;
     PBF_HD void operator()() const {
         if (s->stop) return;
+        if (!cg_step_resolved(s->direction)) {
+            s->stop = 1;
+            return;
+        }
         s->beta = float(s->dots.x / s->rz);
         s->rz = s->dots.x;
         s->stop = !(s->rz > 0.0) || (tol2 > 0.0 && s->dots.y <= tol2);
     }
 };
+// v += alpha g; r -= alpha q; mu += alpha p, with alpha = rz / p.A p from the direction's reduction (each thread
+// forms the same alpha); nothing where the direction is not resolved (cg_step_resolved).
 struct CgUpdate {
     const CgState* s;
     const Float4* g;
@@ -136,8 +129,8 @@ struct CgUpdate {
     float* r;
     float* mu;
     PBF_HD void operator()(uint32_t i) const {
-        if (s->stop) return;
-        const float alpha = s->alpha;
+        if (s->stop || !cg_step_resolved(s->direction)) return;
+        const float alpha = float(s->rz / s->direction.x);
         Float4 a = v[i], b = g[i];
         v[i] = Float4{a.x + alpha * b.x, a.y + alpha * b.y, a.z + alpha * b.z, a.w};
         if (q) r[i] -= alpha * q[i];
@@ -156,34 +149,25 @@ struct CgDirection {
     }
 };
 
-// The density solve's net vertical shift (sum m y after - before) / sum m, m, and the column's drift
-// sum m u_y / sum m, m/s, from their sums in device memory (0 where the column has no mass).
+// The density solve's net vertical shift (sum m y after - before) / sum m, m, from its sums in device memory (0
+// where the column has no mass).
 struct ColumnShift {
     StepSums* s;
     PBF_HD void operator()() const {
         s->shift = s->shift_before.y > 0.0 ? float((s->shift_after.x - s->shift_before.x) / s->shift_before.y) : 0.0f;
     }
 };
-struct ColumnDrift {
-    StepSums* s;
-    PBF_HD void operator()() const { s->drift = s->column.y > 0.0 ? float(s->column.x / s->column.y) : 0.0f; }
-};
 
+// vel += uniform (where with_uniform: gravity's dt g), then vel += dv (per particle), in that order.
 struct AddVelocity {
     const Float4* dv;
     Float4* vel;
+    Vec3 uniform;
+    bool with_uniform;
     PBF_HD void operator()(uint32_t i) const {
         Float4 v = vel[i], d = dv[i];
+        if (with_uniform) v = Float4{v.x + uniform.x, v.y + uniform.y, v.z + uniform.z, v.w};
         vel[i] = Float4{v.x + d.x, v.y + d.y, v.z + d.z, v.w};
-    }
-};
-
-struct AddAcceleration {
-    Float4* vel;
-    Vec3 dv;
-    PBF_HD void operator()(uint32_t i) const {
-        Float4 v = vel[i];
-        vel[i] = Float4{v.x + dv.x, v.y + dv.y, v.z + dv.z, v.w};
     }
 };
 
@@ -351,7 +335,7 @@ XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const Wal
 // d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
 // (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
-void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready) {
+void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready, bool gravity, Vec3 gravity_dv) {
     CellRanges fl = d.fluid_ranges(d.pred);
     const std::size_t n = d.n;
     const GridGeometry& grid = d.grid;
@@ -371,15 +355,11 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
         L = raw(d.grad_correction);
         parallel_for(n, GradientCorrection<Policy>{grid, fl, bnd, radii, cp, L});
     }
-    if (warm_ready) {
-        parallel_for(n, AddVelocity{raw(d.pos_tmp), v});
-    } else {
-        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
-        parallel_for(n, AddVelocity{g, v});
-    }
+    if (!warm_ready) parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
+    // v += dt gravity (where there is gravity), then v += M^-1 J^T mu_prev: one pass
+    parallel_for(n, AddVelocity{warm_ready ? raw(d.pos_tmp) : g, v, gravity_dv, gravity});
     // r = -J v, z = r / diag, p = z
-    parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L});
-    parallel_for(n, CgStart{r, diag, p});
+    parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p});
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
     // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
     const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
@@ -390,12 +370,11 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
         parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
         if (!last) {
             parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
-            reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+            reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);
         } else {   // p . A p = sum m |g|^2: the residual after the last step is not needed
-            reduce_into(n, CgDirectionEnergy{fl.pos, g, p, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
+            reduce_into(n, CgDirectionEnergy{fl.pos, g, p, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);
         }
-        run_once(CgStepSize{s});
-        // v += alpha g; r -= alpha q; mu += alpha p
+        // alpha = rz / p.A p; v += alpha g; r -= alpha q; mu += alpha p
         parallel_for(n, CgUpdate{s, g, last ? nullptr : q, p, v, r, mu});
         if (last) break;
         reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
@@ -409,8 +388,7 @@ inline void remove_column_drift(SolverData& d) {
     if (d.n == 0) return;
     StepSums* sums = raw(d.step_sums);
     reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.vel)}, Double2{0.0, 0.0}, Double2Add{}, &sums->column);
-    run_once(ColumnDrift{sums});
-    parallel_for(d.n, RemoveVerticalDrift{raw(d.vel), &sums->drift, &sums->column});
+    parallel_for(d.n, RemoveVerticalDrift{raw(d.vel), &sums->column});
 }
 
 // The velocity projection's part of the step (closed domains): v = P(v + dt g), after all forces.
@@ -419,12 +397,11 @@ void project_velocity(SolverData& d, const WallNeighbourhoods& walls, bool warm_
     if (!d.p.velocity_projection) return;
     d.clock.begin(kPhaseSolver);
     const Vec3 gravity = gravity_of(d.p);
-    if (gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f)
-        parallel_for(d.n, AddAcceleration{raw(d.vel), d.p.dt * gravity});
+    const bool with_gravity = gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f;
     if (d.p.gradient_correction)
-        solve_divergence<Policy, true>(d, walls, false);
+        solve_divergence<Policy, true>(d, walls, false, with_gravity, d.p.dt * gravity);
     else
-        solve_divergence<Policy, false>(d, walls, warm_ready);
+        solve_divergence<Policy, false>(d, walls, warm_ready, with_gravity, d.p.dt * gravity);
     if (d.p.remove_column_drift && !d.p.periodic[1]) remove_column_drift(d);   // sum m u_y = 0
     d.clock.end(kPhaseSolver);
 }

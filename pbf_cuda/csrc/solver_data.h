@@ -30,6 +30,7 @@ struct SolverData {
     long long step = 0, last_good = 0;
     double time = 0.0;
     uint32_t next_id = 0;
+    bool end_budget_is_next_start = false;   // the last step's end sums are this state's (diagnostics_launch.h)
 
     // Fluid particles, n of capacity slots in use. pos (w = mass), pred the predicted x* of the step.
     dvec<Float4> pos, pred, pos_tmp, vel, vel_tmp, omega;

@@ -52,7 +52,7 @@ public:
         SolverData& d = d_;
         d.atm.diurnal = diurnal_factor(d.p, d.time + 0.5 * double(d.p.dt));   // C1 at the step's mid-time
         StepSums* sums = raw(d.step_sums);
-        reduce_budget_into(d, d.pos, false, false, &sums->start);
+        start_budget(d);                             // the sums at x (the last step's end where nothing changed since)
 
         const WallNeighbourhoods walls = d.wall_neighbourhoods();
         d.clock.begin(kPhasePBF);
@@ -83,17 +83,22 @@ public:
         d.clock.begin(kPhasePBF);
         commit_positions(d, d.pred, d.pos);          // x = x*, wrapped on periodic axes
         d.clock.end(kPhasePBF);
+        d.end_budget_is_next_start = !d.p.periodic[1];   // wrapping x and z moves no mass up or down
 
         d.step += 1;
         d.time += d.p.dt;
         d.lists_ready = false;                       // the lists stay with this step's particles
-        if (d.p.adaptive && d.step % d.p.adapt_every == 0) adapt(d);   // merging, splitting, compaction (section 5.2)
+        if (d.p.adaptive && d.step % d.p.adapt_every == 0) {
+            adapt(d);                                // merging, splitting, compaction (section 5.2)
+            d.end_budget_is_next_start = false;
+        }
     }
 
     // -- set-up ------------------------------------------------------------------------------
     void set_fluid(std::size_t n, const float* pos3, const float* vel3, const float* temperature,
                    const float* vapor, const float* cloud, const float* mass, const uint32_t* id) override {
         SolverData& d = d_;
+        d.end_budget_is_next_start = false;
         std::size_t cap = std::max<std::size_t>(n, d.p.adaptive ? d.p.capacity : n);
         if (cap > 0xfffffff0u) throw std::length_error("particle capacity exceeds 2^32");
         d.capacity = cap;
@@ -167,6 +172,7 @@ public:
 
     void adapt_now() override {
         if (!d_.p.adaptive) throw std::invalid_argument("adapt_now: the scene is not adaptive");
+        d_.end_budget_is_next_start = false;
         thrust::copy(exec(), d_.pos.begin(), d_.pos.begin() + d_.n, d_.pred.begin());
         build_neighbor_grid(d_);
         adapt(d_);
@@ -180,6 +186,7 @@ public:
 
     ArrayView view(const std::string& name) override {
         SolverData& d = d_;
+        d.end_budget_is_next_start = false;   // the caller may write through the view
         ArrayView v;
 #ifdef PBF_BACKEND_CUDA
         v.on_device = true;
