@@ -66,14 +66,14 @@ public:
         d.clock.begin(kPhaseSolver);
         solve_density<Policy>(d, walls, first_summed);   // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
         update_velocity(d);                          // v = (x* - x) / dt (position projection only)
-        // XSPH, viscosity, vorticity confinement at the final x*; on the same pairs: the lists narrowed to them, the
-        // smoothing limiter's weight sums, the velocity projection's warm start
+        // XSPH, viscosity and the vorticity at the final x* (its confinement rides the smoothing pass where one runs);
+        // on the same pairs: the lists narrowed to them, the smoothing limiter's weight sums, the projection's warm start
         const XsphRiders taken = viscosity_vorticity<Policy>(d, limiter_weight_sums<Policy>(d), walls);
         if (!taken.narrowed) narrow_neighbor_lists<Policy>(d);   // x* is final: the lists keep the pairs within support
         d.clock.end(kPhaseSolver);
         d.clock.end(kPhasePBF);
 
-        smooth_fields<Policy>(d, taken.pair_sum);    // temperature smoothing (eq. 12-17)
+        smooth_fields<Policy>(d, taken.pair_sum);    // temperature smoothing (eq. 12-17), vorticity confinement
         cloud_dynamics(d);                           // heating .. buoyancy (eq. 5-11, C1-C3)
 
         d.clock.begin(kPhasePBF);
