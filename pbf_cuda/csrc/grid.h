@@ -169,9 +169,10 @@ PBF_HD inline void for_each_wall_neighbor(const GridGeometry& g, const WallNeigh
 }
 
 // Calls f(j, r, r2) for the particles j = b, b + stride, ... below e of a cell's (or sub-cell's) range with
-// r2 = |x_i - x_j|^2 < r2max (minimum image), in index order. One position at a time: reading four at a time, as
-// the lists' passes do (kernel_policy.h: kListBatch), made every list pass slower (ApplyJT 8% in ncu, H100): this
-// search is compiled into each of them as the fallback where no lists are kept, and its registers count there too.
+// r2 = |x_i - x_j|^2 < r2max (minimum image), in index order. One position at a time, one cell at a time: reading
+// four positions at a time, as the lists' passes do (kernel_policy.h: kListBatch), and visiting a row's consecutive
+// cells in one loop both made the lists' build no faster and every list pass slower (ApplyJT +9% and +8% in ncu,
+// H100; README, Speed of the step, change 9): this search is compiled into each list pass as its fallback.
 template <class F>
 PBF_HD inline void for_each_in_range(const GridGeometry& g, const Float4* pos, uint32_t b, uint32_t e,
                                      uint32_t stride, Vec3 q, float r2max, F&& f) {
