@@ -364,6 +364,16 @@ def test_smoothing_of_mixed_levels_keeps_vapor_within_its_bounds_and_conserves_i
     assert abs(w1 - w0) / w0 < 1e-6
 
 
+def assert_same_sums(a, b, backend, what):
+    """Two ways of taking the same sums (a pass of its own, or taken along by another pass): bitwise the same on the
+    CPU; on a GPU the two are different kernels, which ptxas may contract into FMAs differently, so equal to float32
+    rounding there (measured on an H100: a few of 2316 particles 1 ulp apart in vapour)."""
+    if backend == "cpu":
+        np.testing.assert_array_equal(a, b, err_msg=what)
+    else:
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(np.abs(b).max()), err_msg=what)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 @settings(max_examples=4, deadline=None)
 @given(seed=st.integers(0, 10_000), fine_level=st.integers(1, 4), tight=st.sampled_from([0.05, 0.3]))
@@ -371,8 +381,9 @@ def test_limiter_sums_taken_along_by_xsph_are_the_limiters_own(backend, seed, fi
     """The smoothing limiter's weight sums S_i are summed by the XSPH pass where one runs (the same pairs at the
     same positions, in the same order) and by a pass of their own where none does.  Within one step XSPH,
     viscosity and vorticity change only velocities, and the smoothing reads positions and fields only: so from
-    the same mixed-level state the smoothed fields and the positions after one step must be bitwise the same
-    with XSPH and vorticity on (the sums taken along) and off (their own pass).  The clusters of fine particles
+    the same mixed-level state the positions after one step must be bitwise the same, and the smoothed fields the
+    same (bitwise on the CPU; assert_same_sums), with XSPH and vorticity on (the sums taken along) and off (their
+    own pass).  The clusters of fine particles
     packed within 0.05-0.3 of their spacing have S_i far above the cap at kappa = 1, so the limiter scales their
     pairs and a wrong S_i would change the smoothed fields."""
     knobs = {"smoothing.kappa": 1.0, "smoothing.fields": ["temperature", "vapor"], "atmosphere.heating_rate": 0.0,
@@ -388,8 +399,9 @@ def test_limiter_sums_taken_along_by_xsph_are_the_limiters_own(backend, seed, fi
         sim = Simulation.from_arrays(scene, st0, backend=backend)
         sim.step(1)
         runs.append(sim.state())
-    for key in ("position", "temperature", "vapor", "cloud"):
-        np.testing.assert_array_equal(runs[0][key], runs[1][key], err_msg=key)
+    np.testing.assert_array_equal(runs[0]["position"], runs[1]["position"])   # the smoothing moves no particle
+    for key in ("temperature", "vapor", "cloud"):
+        assert_same_sums(runs[0][key], runs[1][key], backend, key)
     assert not np.array_equal(runs[0]["velocity"], runs[1]["velocity"])     # XSPH did act in the first run
     # and the limited step keeps the vapor within the range the state had (the test above)
     v0, v1 = st0["vapor"].astype(np.float64), runs[0]["vapor"].astype(np.float64)
@@ -420,9 +432,9 @@ def test_warm_start_and_narrowing_taken_along_by_xsph_are_their_own_passes(backe
     """The XSPH pass takes along the velocity projection's warm start M^-1 J^T mu_prev (fluid pairs and walls) and
     the narrowing of the neighbour lists; without XSPH and vorticity each has a pass of its own.  From a state at
     rest, XSPH and vorticity change nothing (every v_j - v_i is 0), so with and without them the step must give
-    bitwise the same positions and velocities: the velocity then is the projection of the warm start of a random
-    impulse mu_prev (kg m^2/s; walls at the floor and the lid), read by every pass after the narrowing.  All three kernel
-    policies, on mixed-level states where adaptive."""
+    the same positions and velocities (bitwise on the CPU; assert_same_sums): the velocity then is the projection
+    of the warm start of a random impulse mu_prev (kg m^2/s; walls at the floor and the lid), read by every pass
+    after the narrowing.  All three kernel policies, on mixed-level states where adaptive."""
     knobs = {"atmosphere.heating_rate": 0.0, "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
              "particles.max_speed": 0.0, "adaptive.split_threshold": 1e9, "adaptive.merge_threshold": 0.0,
              **PAIR_KERNELS_UNDER_TEST[policy]}
@@ -431,8 +443,9 @@ def test_warm_start_and_narrowing_taken_along_by_xsph_are_their_own_passes(backe
     st0 = mixed_level_state(along, seed, fine_level if policy != "uniform" else 0, clusters=12, tight=0.3)
     st0["projection_impulse"] = (impulse * np.random.default_rng(seed).normal(size=len(st0["mass"]))).astype(np.float32)
     with_xsph, without = _one_step_states((along, alone), st0, backend)
-    for key in ("position", "velocity", "temperature"):
+    for key in ("position", "temperature"):   # neither reads the warm start within the step
         np.testing.assert_array_equal(with_xsph[key], without[key], err_msg=key)
+    assert_same_sums(with_xsph["velocity"], without["velocity"], backend, "velocity")
     assert np.abs(with_xsph["velocity"]).max() > 1e-3                    # the warm start did move the air (mm/s to dm/s)
 
 
@@ -443,7 +456,8 @@ def test_warm_start_and_narrowing_taken_along_by_xsph_are_their_own_passes(backe
 def test_vorticity_confinement_taken_along_by_smoothing_is_its_own_pass(backend, seed, policy, fine_level):
     """The smoothing pass takes the vorticity confinement along (the same pairs at x*, the same kernel gradients);
     without smoothing it has a pass of its own.  Without buoyancy the temperature does not act on the flow within a
-    step, so with and without smoothing the step must give bitwise the same positions and velocities, while the
+    step, so with and without smoothing the step must give the same positions and velocities (bitwise on the CPU;
+    assert_same_sums), while the
     temperatures differ (the smoothing acted) and the velocities differ from a run without vorticity confinement
     (the confinement acted).  All three kernel policies, random velocities, mixed-level states where adaptive."""
     knobs = {"atmosphere.heating_rate": 0.0, "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
@@ -457,8 +471,8 @@ def test_vorticity_confinement_taken_along_by_smoothing_is_its_own_pass(backend,
     st0["velocity"] = rng.normal(0.0, 1.0, st0["position"].shape).astype(np.float32)
     st0["temperature"] = (st0["temperature"] + rng.normal(0.0, 1.0, len(st0["mass"]))).astype(np.float32)
     a, b, c = _one_step_states((smoothed, unsmoothed, unconfined), st0, backend)
-    for key in ("position", "velocity"):
-        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    np.testing.assert_array_equal(a["position"], b["position"])   # x* does not read this step's confinement
+    assert_same_sums(a["velocity"], b["velocity"], backend, "velocity")
     assert not np.array_equal(a["temperature"], b["temperature"])
     assert not np.array_equal(a["velocity"], c["velocity"])
 
