@@ -257,22 +257,27 @@ inline bool viscosity_vorticity_active(const Params& p) {
 }
 
 // Once the density iterations have placed x* for the step, the lists keep only the pairs within support there
-// (RowNarrowing, neighbor_list.h). The XSPH pass takes the narrowing along (viscosity_vorticity below); where no
-// XSPH pass runs, a pass of its own narrows them where enough neighbour passes follow at x* to pay for it: the
-// velocity projection's 2 divergence_iterations + 1, vorticity confinement, smoothing.
+// (RowNarrowing, neighbor_list.h), where neighbour passes follow the XSPH pass at x*: the velocity projection's
+// 2 divergence_iterations + 1, smoothing (with the vorticity confinement, or the confinement's own pass). The XSPH
+// pass takes the narrowing along (viscosity_vorticity below); where no XSPH pass runs, a pass of its own narrows
+// the lists where at least three passes follow to pay for it. Where none follows (the dam break), nothing narrows:
+// the XSPH pass's stores would only cost time (on the 2-core AMD the CPU dam break's step was a few percent slower
+// with them).
+inline int passes_after_xsph(const SolverData& d) {
+    const Params& p = d.p;
+    return (p.velocity_projection ? 2 * p.divergence_iterations + 1 : 0) + (p.vorticity > 0.0f ? 1 : 0) +
+           (d.smoothing ? 1 : 0);
+}
+
 inline RowNarrowing list_narrowing(SolverData& d) {
-    if (!d.lists_ready) return RowNarrowing{};
+    if (!d.lists_ready || passes_after_xsph(d) == 0) return RowNarrowing{};
     return RowNarrowing{raw(d.nbr_count), raw(d.nbr_index), d.nbr_row, d.nbr_slot};
 }
 
 template <class Policy>
 void narrow_neighbor_lists(SolverData& d) {
-    if (!d.lists_ready) return;
-    const Params& p = d.p;
-    const int passes = (p.velocity_projection ? 2 * p.divergence_iterations + 1 : 0) +
-                       (p.vorticity > 0.0f ? 1 : 0) + (d.smoothing ? 1 : 0);
-    if (passes < 3) return;
-    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, p.h0, list_narrowing(d)});
+    if (!d.lists_ready || passes_after_xsph(d) < 3) return;
+    parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, d.p.h0, list_narrowing(d)});
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).
