@@ -307,6 +307,10 @@ class Simulation:
         for key in ("temperature", "vapor", "cloud"):
             arrays[key] = np.ascontiguousarray(fluid.get(key, zeros), np.float32)
         if fluid.get("projection_impulse") is not None:
+            if scene.pbf.projection != "velocity":
+                raise ValueError(f"from_arrays: fluid['projection_impulse'] is the velocity projection's; scene "
+                                 f"'{scene.name}' has pbf.projection = '{scene.pbf.projection}' (allowed with "
+                                 f"'velocity' only)")
             arrays["projection_impulse"] = np.ascontiguousarray(fluid["projection_impulse"], np.float32)
         for key, arr in arrays.items():
             if len(arr) != n:

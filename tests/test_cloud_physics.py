@@ -364,6 +364,16 @@ def test_smoothing_of_mixed_levels_keeps_vapor_within_its_bounds_and_conserves_i
     assert abs(w1 - w0) / w0 < 1e-6
 
 
+def _one_step_states(scenes, st0, backend):
+    """The states after one step from st0, one per scene."""
+    runs = []
+    for scene in scenes:
+        sim = Simulation.from_arrays(scene, st0, backend=backend)
+        sim.step(1)
+        runs.append(sim.state())
+    return runs
+
+
 def assert_same_sums(a, b, backend, what):
     """Two ways of taking the same sums (a pass of its own, or taken along by another pass): bitwise the same on the
     CPU; on a GPU the two are different kernels, which ptxas may contract into FMAs differently, so equal to float32
@@ -394,11 +404,7 @@ def test_limiter_sums_taken_along_by_xsph_are_the_limiters_own(backend, seed, fi
     alone = small_cloud_scene(**knobs, **{"pbf.xsph": 0.0, "pbf.vorticity": 0.0, "pbf.viscosity": 0.0})
     st0 = mixed_level_state(along, seed, fine_level, clusters=12, tight=tight)
     st0["velocity"] = np.random.default_rng(seed).normal(0.0, 1.0, st0["position"].shape).astype(np.float32)
-    runs = []
-    for scene in (along, alone):
-        sim = Simulation.from_arrays(scene, st0, backend=backend)
-        sim.step(1)
-        runs.append(sim.state())
+    runs = _one_step_states((along, alone), st0, backend)
     np.testing.assert_array_equal(runs[0]["position"], runs[1]["position"])   # the smoothing moves no particle
     for key in ("temperature", "vapor", "cloud"):
         assert_same_sums(runs[0][key], runs[1][key], backend, key)
@@ -413,15 +419,6 @@ PAIR_KERNELS_UNDER_TEST = {   # the three kernel policies of the solver (kernel_
     "eq19": {"adaptive.enabled": True, "adaptive.max_level": 4, "adaptive.pair_kernel": "mean_of_kernels"},
     "mean_radius": {"adaptive.enabled": True, "adaptive.max_level": 4, "adaptive.pair_kernel": "mean_radius"},
 }
-
-
-def _one_step_states(scenes, st0, backend):
-    runs = []
-    for scene in scenes:
-        sim = Simulation.from_arrays(scene, st0, backend=backend)
-        sim.step(1)
-        runs.append(sim.state())
-    return runs
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -302,6 +302,23 @@ def test_from_arrays_refuses_duplicate_ids():
         Simulation(load_scene("rest_box").with_particle_count(10**9), backend="cpu")
 
 
+@pytest.mark.skipif(not _core_built(), reason="the particle solver is not built")
+def test_from_arrays_checks_the_projection_impulse():
+    """projection_impulse warm-starts the velocity projection: refused for a scene without one, and its length is
+    checked like every other array's."""
+    from pbf_cuda import Simulation
+    sim = Simulation(load_scene("dam_break").with_particle_count(300), backend="cpu")
+    st_ = sim.state()
+    st_["projection_impulse"] = np.zeros(len(st_["mass"]), np.float32)
+    with pytest.raises(ValueError, match=r"projection_impulse.*pbf.projection = 'position'.*'velocity' only"):
+        Simulation.from_arrays(sim.scene, st_, backend="cpu")
+    cloud = Simulation(load_scene("growing").with_particle_count(300), backend="cpu")
+    st_ = cloud.state()
+    st_["projection_impulse"] = np.zeros(len(st_["mass"]) - 1, np.float32)
+    with pytest.raises(ValueError, match=r"fluid\['projection_impulse'\] has \d+ rows, position has \d+"):
+        Simulation.from_arrays(cloud.scene, st_, backend="cpu")
+
+
 # ==== compiled core against its sources =============================================================
 @pytest.mark.skipif(not _core_built(), reason="the particle solver is not built")
 def test_compiled_core_matches_its_sources_and_a_mismatch_is_refused(tmp_path):

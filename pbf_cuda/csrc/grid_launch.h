@@ -131,27 +131,22 @@ constexpr bool kSlotMajorLists = true;    // a warp's 32 particles read slot k o
 constexpr bool kSlotMajorLists = false;   // a thread walks its particle's row
 #endif
 
-// This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores each
-// particle's candidates in rows of the current width, and one reduction sums their total and the longest row into
-// the step's sums, which the host reads after the step (take_list_size): the step does not wait for it. A row longer
-// than the width is cut at the width, and that particle's passes search the cells for the rest of the step
-// (CellRanges::listed: the same pairs in the same order); the rows are widened for the next step (to the longest
-// plus an eighth, rounded up to 8), and a width that grew stays. The run's first build does wait for the size and
-// fills the rows again where one was cut, so that from the first step every particle reads its list (on the GPU the
-// list and the cell search may round a pair's terms differently, and pair forces are exactly opposite only where
-// both particles take the same path). Rows of n x width entries that would exceed 2^32 - 1 entries (about 75M
-// particles at a width of 56) or cannot be allocated give the lists up for the rest of the run: the passes search
-// the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
-// pair_sum: a sum the build takes along (FillNeighbors; NoPairSum: none). Returns whether it was taken: the lists
-// were built.
-// After the step: the lists' size from its sums; rows too narrow for some particle are widened for the next build.
-inline void take_list_size(SolverData& d, const ListSize& size) {
-    if (!d.list_size_pending) return;
-    d.list_size_pending = false;
+// The lists' size: their total (the statistics), and the rows widened to the longest plus an eighth, rounded up to 8,
+// where one was longer than the width; a width that grew stays.
+inline void record_list_size(SolverData& d, const ListSize& size) {
     d.list_entries = size.total;
     if (size.longest > d.nbr_width) d.nbr_width = (size.longest + size.longest / 8 + 7u) / 8u * 8u;
 }
 
+// After the step: the lists' size from the step's sums, where this step built lists.
+inline void take_list_size(SolverData& d, const ListSize& size) {
+    if (!d.list_size_pending) return;
+    d.list_size_pending = false;
+    record_list_size(d, size);
+}
+
+// Rows of the current width filled for this step's sorted particles (FillNeighbors, with pair_sum taken along);
+// false where the lists had to be given up.
 template <class Policy, class PairSum>
 bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
     const uint32_t n = uint32_t(d.n);
@@ -178,6 +173,19 @@ bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
     return true;
 }
 
+// This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores each
+// particle's candidates in rows of the current width, and one reduction sums their total and the longest row into
+// the step's sums, which the host reads after the step (take_list_size): the step does not wait for it. A row longer
+// than the width is cut at the width, and that particle's passes search the cells for the rest of the step
+// (CellRanges::listed: the same pairs in the same order); the rows are widened for the next step (to the longest
+// plus an eighth, rounded up to 8: record_list_size). The run's first build does wait for the size and
+// fills the rows again where one was cut, so that from the first step every particle reads its list (on the GPU the
+// list and the cell search may round a pair's terms differently, and pair forces are exactly opposite only where
+// both particles take the same path). Rows of n x width entries that would exceed 2^32 - 1 entries (about 75M
+// particles at a width of 56) or cannot be allocated give the lists up for the rest of the run: the passes search
+// the cells instead (the same neighbours, slower; d.lists_given_up, in the statistics).
+// pair_sum: a sum the build takes along (FillNeighbors; NoPairSum: none). Returns whether it was taken: the lists
+// were built.
 template <class Policy, class PairSum>
 bool build_neighbor_lists(SolverData& d, const PairSum& pair_sum) {
     d.lists_ready = false;
@@ -186,9 +194,8 @@ bool build_neighbor_lists(SolverData& d, const PairSum& pair_sum) {
     const ListSizeOf count{raw(d.nbr_count)};
     if (!d.list_width_settled) {   // the run's first build: every row whole from the first step
         d.list_width_settled = true;
-        d.list_size_pending = true;
         const uint32_t width = d.nbr_width;
-        take_list_size(d, reduce_over(d.n, count, ListSize{0ull, 0u}, ListSizeAdd{}));
+        record_list_size(d, reduce_over(d.n, count, ListSize{0ull, 0u}, ListSizeAdd{}));
         if (d.nbr_width != width && !fill_neighbor_rows<Policy>(d, pair_sum)) return false;
     }
     reduce_into(d.n, count, ListSize{0ull, 0u}, ListSizeAdd{}, &raw(d.step_sums)->list_size);

@@ -42,18 +42,18 @@ namespace pbf {
 // Skin of the lists as a fraction of the level-0 kernel radius h0.
 constexpr float kNeighborSkin = 0.1f;
 
-// f(j) for the candidates of particle i: the policy's search widened by the skin, and in adaptive runs only the
-// pairs within their own support max(h_i, h_j) plus the skin. The nested search's cell mode tests a whole cell's
-// pairs against the cell's largest radius, so without this a level-3 particle in a cell that holds one level-0
-// particle would list every particle within h0 (8 times the volume its pairs need) and every pass would read them.
-// The test is symmetric in i and j, so j is in i's list exactly when i is in j's.
+// f(j, r, r2, m_j, h_j) for the candidates of particle i (kernel radius hi): the policy's search widened by the skin,
+// and in adaptive runs only the pairs within their own support max(h_i, h_j) plus the skin. The nested search's cell
+// mode tests a whole cell's pairs against the cell's largest radius, so without this a level-3 particle in a cell
+// that holds one level-0 particle would list every particle within h0 (8 times the volume its pairs need) and every
+// pass would read them. The test is symmetric in i and j, so j is in i's list exactly when i is in j's.
 template <class Policy, class F>
 PBF_HD inline void for_each_list_candidate(const GridGeometry& grid, const CellRanges& fluid, const LevelRadii& radii,
-                                           float h0, float skin, uint32_t i, F&& f) {
-    Float4 pi = fluid.pos[i];
-    const float hi = Policy::radius(radii, h0, pi.w);
-    Policy::for_each_candidate(grid, fluid, i, xyz(pi), h0, skin, [&](uint32_t j, Vec3, float r2) {
-        if (Policy::within_support(r2, hi, Policy::radius(radii, h0, fluid.pos[j].w), skin)) f(j);
+                                           float h0, float skin, uint32_t i, Vec3 xi, float hi, F&& f) {
+    Policy::for_each_candidate(grid, fluid, i, xi, h0, skin, [&](uint32_t j, Vec3 r, float r2) {
+        const float mj = fluid.pos[j].w;
+        const float hj = Policy::radius(radii, h0, mj);
+        if (Policy::within_support(r2, hi, hj, skin)) f(j, r, r2, mj, hj);
     });
 }
 
@@ -79,7 +79,6 @@ struct ListSizeAdd {
 // finish(sums, i, x_i, m_i, h_i). NoPairSum: none (the plain build).
 struct NoPairSum {
     struct Sums {};
-    static constexpr bool kActive = false;
     PBF_HD void add(Sums&, uint32_t, uint32_t, Vec3, float, float, float, float) const {}
     PBF_HD void finish(Sums&, uint32_t, Vec3, float, float) const {}
 };
@@ -99,25 +98,16 @@ struct FillNeighbors {
     PBF_HD void operator()(uint32_t i) const {
         uint32_t c = 0;
         uint32_t* out = index + std::size_t(i) * row;
-        if constexpr (!PairSum::kActive) {
-            for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, [&](uint32_t j) {
-                if (c < width) out[std::size_t(c) * slot] = j;
-                ++c;
-            });
-        } else {
-            const Float4 pi = fluid.pos[i];
-            const float hi = Policy::radius(radii, h0, pi.w);
-            typename PairSum::Sums sums{};
-            Policy::for_each_candidate(grid, fluid, i, xyz(pi), h0, skin, [&](uint32_t j, Vec3 r, float r2) {
-                const float mj = fluid.pos[j].w;
-                const float hj = Policy::radius(radii, h0, mj);
-                if (!Policy::within_support(r2, hi, hj, skin)) return;   // for_each_list_candidate's test
-                if (c < width) out[std::size_t(c) * slot] = j;
-                ++c;
-                if (within_radius(r2, Policy::support(hi, hj), 0.0f)) pair_sum.add(sums, i, j, r, r2, hi, mj, hj);
-            });
-            pair_sum.finish(sums, i, xyz(pi), pi.w, hi);
-        }
+        const Float4 pi = fluid.pos[i];
+        const float hi = Policy::radius(radii, h0, pi.w);
+        typename PairSum::Sums sums{};
+        for_each_list_candidate<Policy>(grid, fluid, radii, h0, skin, i, xyz(pi), hi,
+                                        [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+            if (c < width) out[std::size_t(c) * slot] = j;
+            ++c;
+            if (within_radius(r2, Policy::support(hi, hj), 0.0f)) pair_sum.add(sums, i, j, r, r2, hi, mj, hj);
+        });
+        pair_sum.finish(sums, i, xyz(pi), pi.w, hi);
         count[i] = c;
     }
 };

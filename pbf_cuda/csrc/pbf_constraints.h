@@ -67,12 +67,19 @@ struct Sym3 {
 // The density constraint's neighbourhood of fluid particle i at xi: on_fluid(j, r, r2, m_j, h_j) for every fluid
 // neighbour (i itself included, r2 = 0), then on_wall(r, r2, m_b) for every boundary particle within h0 when i is
 // near a wall (boundary particles have the level-0 radius h0), from the walls' table (grid.h).
+// Its walls alone: on_wall(r, r2, m_b) where i is near a wall (the sums that add the walls after their fluid pairs).
+template <class Wall>
+PBF_HD inline void for_each_constraint_wall(const GridGeometry& grid, const WallNeighbourhoods& walls, float h0,
+                                            Vec3 xi, Wall&& on_wall) {
+    if (walls.offset && near_wall(grid, xi, h0)) for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, on_wall);
+}
+
 template <class Policy, class Fluid, class Wall>
 PBF_HD inline void for_each_constraint_neighbor(const GridGeometry& grid, const CellRanges& fluid,
                                                 const WallNeighbourhoods& walls, const LevelRadii& radii, float h0,
                                                 uint32_t i, Vec3 xi, Fluid&& on_fluid, Wall&& on_wall) {
     for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, on_fluid);
-    if (walls.offset && near_wall(grid, xi, h0)) for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, on_wall);
+    for_each_constraint_wall(grid, walls, h0, xi, on_wall);
 }
 
 // Row i of the constraint Jacobian J = grad C, summed over the neighbourhood: grad_i C_i and the Jacobi diagonal
@@ -97,10 +104,9 @@ struct JacobianRow {
 template <class Policy>
 PBF_HD inline void add_wall_terms_transposed(const GridGeometry& grid, const WallNeighbourhoods& walls, float h0,
                                              Vec3 xi, float hi, float ai, float mi, Vec3& sum) {
-    if (walls.offset && near_wall(grid, xi, h0))
-        for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, [&](Vec3 r, float r2, float mb) {
-            sum += (ai * mb / mi) * Policy::grad_W(r, r2, hi, h0);
-        });
+    for_each_constraint_wall(grid, walls, h0, xi, [&](Vec3 r, float r2, float mb) {
+        sum += (ai * mb / mi) * Policy::grad_W(r, r2, hi, h0);
+    });
 }
 
 template <class Policy, class Coef>
@@ -119,8 +125,9 @@ PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fl
 
 // The velocity projection's warm start g = M^-1 J^T mu (ApplyJT below with the previous step's impulse mu) summed
 // by another pass over the pairs at x*, the XSPH pass (ViscosityVorticity below), which visits them in ApplyJT's
-// order: the fluid pairs in list order, then the walls (add_wall_terms_transposed), so g is bitwise ApplyJT's and
-// the projection starts one neighbour pass later into its work (pbf_constraints_launch.h: solve_divergence).
+// order: the fluid pairs in list order, then the walls (add_wall_terms_transposed), so g is ApplyJT's (bitwise on the
+// CPU; on the GPU the two kernels may be contracted into FMAs differently) and the projection starts one neighbour
+// pass later into its work (pbf_constraints_launch.h: solve_divergence).
 // Only without the gradient correction, whose L is formed when the projection starts.
 template <class Policy>
 struct WarmStartImpulse {
@@ -154,7 +161,6 @@ struct DensityLambda {
         float rho = 0.0f;
         JacobianRow row;
     };
-    static constexpr bool kActive = true;
     // fluid pair (i, j) within its support, i itself included (r2 = 0)
     PBF_HD void add(Sums& s, uint32_t i, uint32_t j, Vec3 r, float r2, float hi, float mj, float hj) const {
         s.rho += mj * Policy::W(r2, hi, hj);
@@ -162,11 +168,10 @@ struct DensityLambda {
     }
     // the walls (for_each_constraint_neighbor's order: after the fluid pairs), then lambda and the density
     PBF_HD void finish(Sums& s, uint32_t i, Vec3 xi, float mi, float hi) const {
-        if (walls.offset && near_wall(grid, xi, cp.h0))
-            for_each_wall_neighbor<kListBatch>(grid, walls, xi, cp.h0, [&](Vec3 r, float r2, float mb) {
-                s.rho += mb * Policy::W(r2, hi, cp.h0);
-                s.row.add_wall(Policy::grad_W(r, r2, hi, cp.h0), mb, cp.inv_rest_density);
-            });
+        for_each_constraint_wall(grid, walls, cp.h0, xi, [&](Vec3 r, float r2, float mb) {
+            s.rho += mb * Policy::W(r2, hi, cp.h0);
+            s.row.add_wall(Policy::grad_W(r, r2, hi, cp.h0), mb, cp.inv_rest_density);
+        });
         float c = s.rho * cp.inv_rest_density - 1.0f;
         if (cp.unilateral && c < 0.0f) c = 0.0f;
         float denom = s.row.diagonal(mi) + cp.relaxation;
@@ -446,7 +451,8 @@ struct ViscosityVorticity {
 // Vorticity confinement force f_i = eps (N x omega_i), N = eta / |eta|, eta = grad |omega|
 // (Macklin eq. 16), added to the velocity over one step: eta summed over the pairs j != i (add), then the force
 // applied (apply). A pass of its own (VorticityConfinement below), or taken along by the smoothing pass, which
-// visits the same pairs at x* in the same order (SmoothScalars, smoothing.h), so the velocities are bitwise the same.
+// visits the same pairs at x* in the same order (SmoothScalars, smoothing.h), so the velocities are the same (bitwise
+// on the CPU; on the GPU the two kernels may be contracted into FMAs differently).
 struct ConfinementSum {
     float epsilon;
     float dt;

@@ -340,7 +340,7 @@ XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const Wal
 // d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
 // (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
-void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready, bool gravity, Vec3 gravity_dv) {
+void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready, Vec3 gravity_dv) {
     CellRanges fl = d.fluid_ranges(d.pred);
     const std::size_t n = d.n;
     const GridGeometry& grid = d.grid;
@@ -362,6 +362,7 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
     }
     if (!warm_ready) parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
     // v += dt gravity (where there is gravity), then v += M^-1 J^T mu_prev: one pass
+    const bool gravity = gravity_dv.x != 0.0f || gravity_dv.y != 0.0f || gravity_dv.z != 0.0f;
     parallel_for(n, AddVelocity{warm_ready ? raw(d.pos_tmp) : g, v, gravity_dv, gravity});
     // r = -J v, z = r / diag, p = z
     parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p});
@@ -401,12 +402,11 @@ template <class Policy>
 void project_velocity(SolverData& d, const WallNeighbourhoods& walls, bool warm_ready) {
     if (!d.p.velocity_projection) return;
     d.clock.begin(kPhaseSolver);
-    const Vec3 gravity = gravity_of(d.p);
-    const bool with_gravity = gravity.x != 0.0f || gravity.y != 0.0f || gravity.z != 0.0f;
+    const Vec3 gravity_dv = d.p.dt * gravity_of(d.p);
     if (d.p.gradient_correction)
-        solve_divergence<Policy, true>(d, walls, false, with_gravity, d.p.dt * gravity);
+        solve_divergence<Policy, true>(d, walls, false, gravity_dv);
     else
-        solve_divergence<Policy, false>(d, walls, warm_ready, with_gravity, d.p.dt * gravity);
+        solve_divergence<Policy, false>(d, walls, warm_ready, gravity_dv);
     if (d.p.remove_column_drift && !d.p.periodic[1]) remove_column_drift(d);   // sum m u_y = 0
     d.clock.end(kPhaseSolver);
 }

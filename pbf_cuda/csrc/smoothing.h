@@ -60,7 +60,8 @@ struct SmoothingPair {
 
 // The limiter's weight of pair (i, j), max(c_ij, 0): S_i sums it over j != i. out: where S_i goes (nullptr: the step
 // does not need it). Summed by SmoothingWeightSums, or by the XSPH pass, which visits the same pairs at the same
-// positions in the same order (ViscosityVorticity's PairSum, pbf_constraints.h), so S_i is bitwise the same.
+// positions in the same order (ViscosityVorticity's PairSum, pbf_constraints.h), so S_i is the same (bitwise on the
+// CPU; on the GPU the two kernels may be contracted into FMAs differently).
 template <class Policy>
 struct LimiterWeight {
     SmoothingPair pair;

@@ -60,8 +60,9 @@ public:
         predict_positions(d);                        // x* = x + dt (v + dt g)
         build_neighbor_grid(d);                      // sort by the cell of x*, cell ranges
         // each particle's candidates, once per step; on the way, the first density iteration's rho and lambda
-        const bool first_summed = d.p.iterations > 0 ? build_neighbor_lists<Policy>(d, first_density_sums<Policy>(d, walls))
-                                                     : build_neighbor_lists<Policy>(d, NoPairSum{});
+        bool first_summed = false;                   // whether the build summed the first density iteration
+        if (d.p.iterations > 0) first_summed = build_neighbor_lists<Policy>(d, first_density_sums<Policy>(d, walls));
+        else build_neighbor_lists<Policy>(d, NoPairSum{});
         d.clock.end(kPhaseNeighbors);
         d.clock.begin(kPhaseSolver);
         solve_density<Policy>(d, walls, first_summed);   // iterations { rho, lambda (eq. 1-4, 18); dp, s_corr; walls }
