@@ -21,7 +21,8 @@ __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memor
            "cuda_memory_in_use"]
 
 FLOAT4, FLOAT, UINT = 16, 4, 4
-SORT_SCRATCH_BYTES = 8           # the radix sort's second key and value buffers (uint32 each)
+SORT_SCRATCH_BYTES = 1           # the radix sort's own scratch (CUB's digit histograms and look-back tiles, under
+                                 # a byte per particle); its second buffers are uint_tmp and perm_alt
 ADAPTIVE_BYTES_PER_SLOT = 64     # flags, shape energy, split/merge bookkeeping, with room for the sub-cells
 BYTES_PER_BOUNDARY = 256         # float4 position, three floats, and the walls' table: each boundary particle
                                  # copied (float4) into the segments of the 11-14 cells that reach it
@@ -94,12 +95,13 @@ def particle_slots(scene: Scene, n: int) -> int:
 def solver_bytes_per_slot(scene: Scene) -> int:
     """Bytes per particle slot of the solver's arrays, as SolverData::allocate makes them for the scene:
     pos, pred, pos_tmp, vel, vel_tmp (and omega with vorticity confinement) as float4; id, uint_tmp, keys,
-    perm as uint32; lambda, density, float_tmp as float; the velocity projection's r, p, q, diag, mu (and
+    perm, perm_alt as uint32; lambda, density, float_tmp as float; the velocity projection's r, p, q, diag, mu (and
     the gradient correction's 6 floats, the shift's 1); temperature, vapor, cloud; one output per smoothed
     field; the sort's scratch; the adaptive bookkeeping. (Measured on an H100: 170 bytes per particle for
-    `growing` without neighbour lists at 240M particles, all device memory the run held; this gives 168.)"""
+    `growing` without neighbour lists at 240M particles, all device memory the run held, when the sort's second
+    buffers were 8 bytes of Thrust's scratch; this gives 169.)"""
     p = scene.pbf
-    bytes_ = (5 + (p.vorticity > 0)) * FLOAT4 + 4 * UINT + 3 * FLOAT + SORT_SCRATCH_BYTES
+    bytes_ = (5 + (p.vorticity > 0)) * FLOAT4 + 5 * UINT + 3 * FLOAT + SORT_SCRATCH_BYTES
     if p.projection == "velocity":
         bytes_ += (5 + 6 * p.gradient_correction + (p.shift_keeps_anomaly and scene.thermodynamics)) * FLOAT
     if scene.thermodynamics:

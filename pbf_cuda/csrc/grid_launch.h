@@ -10,17 +10,39 @@
 namespace pbf {
 namespace PBF_BACKEND_NS {
 
-// Sort key of particle i: its cell (uniform runs) or its nested sub-cell cell * 8 + sub (adaptive runs, grid.h).
+// Sort key of particle i: its cell (uniform runs) or its nested sub-cell cell * 8 + sub (adaptive runs, grid.h),
+// with perm[i] = i (the sort's values); on the way, the ranges' start and end cleared (for item i < ranges): one pass
+// over max(n, ranges) items.
 struct ComputeKeys {
     GridGeometry g;
     const Float4* pos;
     uint32_t* keys;
+    uint32_t* perm;
     bool nested;
+    uint32_t n;
+    uint32_t* range_start;
+    uint32_t* range_end;
+    uint32_t ranges;
     PBF_HD void operator()(uint32_t i) const {
-        Vec3 x = xyz(pos[i]);
-        keys[i] = nested ? nested_key(g, x) : cell_key(g, x);
+        if (i < n) {
+            Vec3 x = xyz(pos[i]);
+            keys[i] = nested ? nested_key(g, x) : cell_key(g, x);
+            perm[i] = i;
+        }
+        if (i < ranges) {
+            range_start[i] = 0u;
+            range_end[i] = 0u;
+        }
     }
 };
+
+// Bits a sort key of the grid needs: keys run below num_cells (uniform) or num_cells x 8 (nested).
+inline int sort_key_bits(const GridGeometry& g, bool nested) {
+    const unsigned long long keys = (unsigned long long)g.num_cells() * (nested ? kSubCells : 1u);
+    int bits = 1;
+    while (bits < 32 && (1ull << bits) < keys) ++bits;
+    return bits;
+}
 
 struct MarkCellRanges {
     const uint32_t* keys;
@@ -105,20 +127,16 @@ inline void allocate_grid(SolverData& d) {
 // Sort every particle array by the cell of pred (the nested key in adaptive runs) and mark the ranges.
 inline void build_neighbor_grid(SolverData& d) {
     const bool nested = d.p.adaptive;
-    parallel_for(d.n, ComputeKeys{d.grid, raw(d.pred), raw(d.keys), nested});
-    thrust::sequence(exec(), d.perm.begin(), d.perm.begin() + d.n);
-    thrust::sort_by_key(exec(), d.keys.begin(), d.keys.begin() + d.n, d.perm.begin());
+    dvec<uint32_t>& start = nested ? d.sub_start : d.cell_start;   // the ranges MarkCellRanges fills
+    dvec<uint32_t>& end = nested ? d.sub_end : d.cell_end;
+    const std::size_t ranges = start.size();
+    parallel_for(std::max(d.n, ranges), ComputeKeys{d.grid, raw(d.pred), raw(d.keys), raw(d.perm), nested,
+                                                    uint32_t(d.n), raw(start), raw(end), uint32_t(ranges)});
+    sort_pairs(d.keys, d.perm, d.uint_tmp, d.perm_alt, d.n, sort_key_bits(d.grid, nested));
     d.permute_all(true);
-    if (!nested) {
-        thrust::fill(exec(), d.cell_start.begin(), d.cell_start.end(), 0u);
-        thrust::fill(exec(), d.cell_end.begin(), d.cell_end.end(), 0u);
-        parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.cell_start), raw(d.cell_end)});
-        return;
-    }
-    // Adaptive: sub-cell ranges from the nested keys, then each cell's range and largest radius from them.
-    thrust::fill(exec(), d.sub_start.begin(), d.sub_start.end(), 0u);
-    thrust::fill(exec(), d.sub_end.begin(), d.sub_end.end(), 0u);
-    parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(d.sub_start), raw(d.sub_end)});
+    parallel_for(d.n, MarkCellRanges{raw(d.keys), uint32_t(d.n), raw(start), raw(end)});
+    if (!nested) return;
+    // Adaptive: each cell's range and largest radius from its sub-cells' ranges.
     parallel_for(d.sub_start.size(), SubCellRadius{d.radii, raw(d.pred), raw(d.sub_start), raw(d.sub_end),
                                                    raw(d.sub_radius)});
     parallel_for(d.cell_start.size(), CellFromSubCells{raw(d.sub_start), raw(d.sub_end), raw(d.sub_radius),

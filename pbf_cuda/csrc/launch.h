@@ -5,7 +5,8 @@
 //   parallel_for(n, f)          f(i) for i in [0, n): one CUDA thread per item, or a Thrust for_each (OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
-//   reduce_into(n, f, init, op, out)  the same into *out in device memory: the host does not wait (one launch)
+//   reduce_into(n, f, init, op, out[, then])  the same into *out in device memory: the host does not wait (one
+//                               launch); then() runs once after the value is written
 //   run_once(f)                 f() once: a one-thread kernel on the GPU (scalar work on device memory)
 //   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
 //
@@ -39,7 +40,9 @@
 #include <new>
 #include <cstddef>
 #include <cstdint>
+#include <cstdlib>
 #include <stdexcept>
+#include <utility>
 #include <string>
 #include <vector>
 
@@ -49,6 +52,7 @@
 #include <thrust/iterator/transform_iterator.h>
 
 #ifdef PBF_BACKEND_CUDA
+#include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_reduce.cuh>
 #include <cuda_runtime.h>
 #endif
@@ -127,8 +131,61 @@ inline auto exec() { return thrust::device; }
 #else
 #define PBF_LAUNCH_BOUNDS
 #endif
+// Programmatic dependent launch (compute capability 9.0 and later): every kernel of this layer is launched with
+// the stream serialisation relaxed, so the GPU prepares a kernel's launch while the kernel before it drains, and
+// schedules its blocks as soon as the last block before it has exited instead of after the whole grid has been
+// retired (a few microseconds less between two dependent launches). Each kernel first waits (griddepcontrol.wait)
+// until the grids before it have completed and their writes are visible, so it reads exactly what it read under
+// full serialisation: the results are the same to the bit. No kernel signals its dependants early
+// (griddepcontrol.launch_dependents): tried at each kernel's start, the next kernel's blocks then sat on the SMs
+// beside the running ones and made the 100k-particle steps 3-7% slower (README, "Speed of the step", change 10).
+// Kernels that Thrust launches (sorts, scans) keep the full serialisation. Older GPUs launch as before.
+// CLOUDPBF_PDL=0 in the environment switches it off (read once per process), for comparisons.
+__device__ __forceinline__ void wait_for_prior_grids() {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+    asm volatile("griddepcontrol.wait;" ::: "memory");
+#endif
+}
+
+// Whether launches on the current device may overlap their predecessor's drain (see above).
+inline bool programmatic_launch() {
+    static const bool enabled = [] {
+        const char* env = std::getenv("CLOUDPBF_PDL");
+        return !(env && std::string(env) == "0");
+    }();
+    constexpr int kDevices = 64;
+    static int capability[kDevices] = {};   // 0: not asked yet; else the major version + 1 (-1: no answer)
+    if (!enabled) return false;
+    int dev = 0;
+    if (cudaGetDevice(&dev) != cudaSuccess || dev < 0 || dev >= kDevices) return false;
+    if (capability[dev] == 0) {
+        int major = 0;
+        capability[dev] = cudaDeviceGetAttribute(&major, cudaDevAttrComputeCapabilityMajor, dev) == cudaSuccess ? major + 1 : -1;
+    }
+    return capability[dev] >= 9 + 1;
+}
+
+// kernel<<<blocks, threads>>>(args...) on the default stream, programmatically dependent where the GPU allows it;
+// what names the launch goes into the error.
+template <class... Params, class... Args>
+void launch(const char* what, void (*kernel)(Params...), unsigned blocks, unsigned threads, Args&&... args) {
+    cudaLaunchAttribute attribute[1];
+    attribute[0].id = cudaLaunchAttributeProgrammaticStreamSerialization;
+    attribute[0].val.programmaticStreamSerializationAllowed = 1;
+    cudaLaunchConfig_t config = {};
+    config.gridDim = dim3(blocks);
+    config.blockDim = dim3(threads);
+    config.dynamicSmemBytes = 0;
+    config.stream = 0;
+    config.attrs = attribute;
+    config.numAttrs = programmatic_launch() ? 1 : 0;
+    cudaError_t err = cudaLaunchKernelEx(&config, kernel, std::forward<Args>(args)...);
+    if (err != cudaSuccess) throw std::runtime_error(std::string(what) + " launch: " + cudaGetErrorString(err));
+}
+
 template <class F>
 __global__ void PBF_LAUNCH_BOUNDS for_each_kernel(uint32_t n, F f) {
+    wait_for_prior_grids();
     uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i < n) f(i);
 }
@@ -141,7 +198,7 @@ template <class F>
 void parallel_for(std::size_t n, const F& f) {
     if (n == 0) return;
     const unsigned block = 128;
-    for_each_kernel<<<unsigned((n + block - 1) / block), block>>>(uint32_t(n), f);
+    launch("parallel_for", for_each_kernel<F>, unsigned((n + block - 1) / block), block, uint32_t(n), f);
 }
 #else
 // Chunks of 512 items handed out as threads come free (OpenMP's dynamic schedule). Thrust's for_each splits the
@@ -198,13 +255,16 @@ __device__ inline void reduce_block(T* s, Op op) {
     }
 }
 
-template <class F, class T, class Op>
-__global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f, T init, Op op, T* partial, T* out) {
+template <class F, class T, class Op, class Then>
+__global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f, T init, Op op, T* partial, T* out,
+                                                                Then then) {
     __shared__ alignas(T) unsigned char storage[sizeof(T) * kReduceThreads];
     __shared__ bool last;
     T* s = reinterpret_cast<T*>(storage);
+    wait_for_prior_grids();
     const unsigned t = threadIdx.x;
     T acc = init;
+#pragma unroll 4
     for (std::size_t i = std::size_t(blockIdx.x) * kReduceThreads + t; i < n; i += std::size_t(gridDim.x) * kReduceThreads)
         acc = op(acc, f(uint32_t(i)));
     s[t] = acc;
@@ -218,47 +278,103 @@ __global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f,
     __syncthreads();
     if (!last) return;
     __threadfence();
+    // The partials in the order of a loop over b = t, t + 256, ...; for small T (the sums and dot products of the
+    // step) all loads are issued before the first op, so the last block waits for L2 once, not once per row.
+    static_assert(kReduceBlocks % kReduceThreads == 0, "reduce_kernel: whole rows of partials");
+    constexpr unsigned kRows = kReduceBlocks / kReduceThreads;
     acc = init;
-    for (unsigned b = t; b < gridDim.x; b += kReduceThreads) acc = op(acc, load_from_l2(partial + b));
+    if constexpr (sizeof(T) <= 16) {
+        T row[kRows];
+#pragma unroll
+        for (unsigned k = 0; k < kRows; ++k)
+            if (t + k * kReduceThreads < gridDim.x) row[k] = load_from_l2(partial + t + k * kReduceThreads);
+#pragma unroll
+        for (unsigned k = 0; k < kRows; ++k)
+            if (t + k * kReduceThreads < gridDim.x) acc = op(acc, row[k]);
+    } else {
+        for (unsigned b = t; b < gridDim.x; b += kReduceThreads) acc = op(acc, load_from_l2(partial + b));
+    }
     s[t] = acc;
     __syncthreads();
     reduce_block(s, op);
     if (t == 0) {
         *out = s[0];
         reduce_blocks_done = 0;
+        then();
     }
 }
 #endif
 
-template <class T, class F, class Op>
-void reduce_into(std::size_t n, const F& f, T init, Op op, T* out) {
+// Nothing to do after a reduction (reduce_into's then).
+struct NoFinish {
+    PBF_HD void operator()() const {}
+};
+
+// then(): run once after *out is written, by the thread that wrote it (scalar work on the sum, such as a solver's
+// step size), in place of a run_once launch after the reduction.
+template <class T, class F, class Op, class Then = NoFinish>
+void reduce_into(std::size_t n, const F& f, T init, Op op, T* out, const Then& then = Then{}) {
 #ifdef PBF_BACKEND_CUDA
     const std::size_t wanted = (n + kReduceThreads - 1) / kReduceThreads;
     const unsigned blocks = unsigned(wanted < 1 ? 1 : (wanted > kReduceBlocks ? kReduceBlocks : wanted));
     const std::size_t bytes = sizeof(T) * blocks;
     char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
-    reduce_kernel<<<blocks, kReduceThreads>>>(uint32_t(n), f, init, op, reinterpret_cast<T*>(tmp), out);
+    launch("reduce_into", reduce_kernel<F, T, Op, Then>, blocks, kReduceThreads, uint32_t(n), f, init, op,
+           reinterpret_cast<T*>(tmp), out, then);
     temp_allocator().deallocate(tmp, bytes);
 #else
     *out = reduce_over(n, f, init, op);
+    then();
 #endif
 }
 
 #ifdef PBF_BACKEND_CUDA
 template <class F>
-__global__ void once_kernel(F f) { f(); }
+__global__ void once_kernel(F f) {
+    wait_for_prior_grids();
+    f();
+}
 
 template <class F>
-void run_once(const F& f) { once_kernel<<<1, 1>>>(f); }
+void run_once(const F& f) { launch("run_once", once_kernel<F>, 1, 1, f); }
 #else
 template <class F>
 void run_once(const F& f) { f(); }
 #endif
 
+// Stable sort of keys[0, n) with values[0, n) alongside, by the keys' lowest key_bits bits (every key must be below
+// 2^key_bits). keys_alt and values_alt (as large) are the sort's second buffers; where the result ends in them they
+// are swapped in, so it is always in keys and values. On the GPU CUB's radix sort over key_bits bits only, one pass
+// per 8 bits (the neighbour grid's 17-bit cell keys of a 1M-particle run: 3 passes instead of a 32-bit key's 4);
+// on the CPU Thrust's sort. The order is that of a stable sort either way.
+inline void sort_pairs(dvec<uint32_t>& keys, dvec<uint32_t>& values, dvec<uint32_t>& keys_alt,
+                       dvec<uint32_t>& values_alt, std::size_t n, int key_bits) {
+    if (n < 2) return;
+#ifdef PBF_BACKEND_CUDA
+    cub::DoubleBuffer<uint32_t> k(raw(keys), raw(keys_alt)), v(raw(values), raw(values_alt));
+    std::size_t bytes = 0;
+    cudaError_t err = cub::DeviceRadixSort::SortPairs(nullptr, bytes, k, v, int(n), 0, key_bits, cudaStream_t(0));
+    if (err == cudaSuccess) {
+        char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
+        err = cub::DeviceRadixSort::SortPairs(tmp, bytes, k, v, int(n), 0, key_bits, cudaStream_t(0));
+        temp_allocator().deallocate(tmp, bytes);
+    }
+    if (err != cudaSuccess) throw std::runtime_error(std::string("sort_pairs: ") + cudaGetErrorString(err));
+    if (k.selector) keys.swap(keys_alt);
+    if (v.selector) values.swap(values_alt);
+#else
+    (void)keys_alt;
+    (void)values_alt;
+    (void)key_bits;
+    thrust::sort_by_key(exec(), keys.begin(), keys.begin() + n, values.begin());
+#endif
+}
+
 // f(t, team) for t in [0, n): one team per item (common.h), a warp on the GPU, a thread on the CPU.
 #ifdef PBF_BACKEND_CUDA
 template <class F>
 __global__ void team_kernel(uint32_t n, F f) {
+    wait_for_prior_grids();
     uint32_t t = (blockIdx.x * blockDim.x + threadIdx.x) / WarpTeam::kSize;
     if (t >= n) return;  // whole warps leave together: blockDim is a multiple of the warp size
     f(t, WarpTeam{threadIdx.x % WarpTeam::kSize});
@@ -269,9 +385,7 @@ void parallel_for_teams(std::size_t n, const F& f) {
     if (n == 0) return;
     const unsigned block = 128;
     std::size_t threads = n * WarpTeam::kSize;
-    team_kernel<<<unsigned((threads + block - 1) / block), block>>>(uint32_t(n), f);
-    cudaError_t err = cudaGetLastError();
-    if (err != cudaSuccess) throw std::runtime_error(std::string("team kernel launch: ") + cudaGetErrorString(err));
+    launch("team kernel", team_kernel<F>, unsigned((threads + block - 1) / block), block, uint32_t(n), f);
 }
 #else
 template <class F>

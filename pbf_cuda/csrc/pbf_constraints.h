@@ -513,8 +513,8 @@ struct Double2Add {
 };
 
 // The scalars of the velocity projection's conjugate gradients, kept in device memory (pbf_constraints_launch.h:
-// solve_divergence): the reductions write them, one-thread kernels turn them into the step size and the new
-// direction's weight, and the vector kernels read them, so the host never waits for a dot product.
+// solve_divergence): the reductions write them and, in their last block, turn them into the new direction's weight
+// and the stop flag; the vector kernels read them (and form the step size), so the host never waits for a dot product.
 struct CgState {
     double rz;          // r . z of the current residual (z = D^-1 r)
     Double2 dots;       // the residual's last reduction: (r . z, r . r)

@@ -150,7 +150,7 @@ struct CgDirection {
 };
 
 // The density solve's net vertical shift (sum m y after - before) / sum m, m, from its sums in device memory (0
-// where the column has no mass).
+// where the column has no mass); run by the last block of the sum after (reduce_into's then).
 struct ColumnShift {
     StepSums* s;
     PBF_HD void operator()() const {
@@ -243,8 +243,8 @@ void solve_density(SolverData& d, const WallNeighbourhoods& walls, bool first_su
         d.pred.swap(d.pos_tmp);
     }
     if (closed_column) {
-        reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_after);
-        run_once(ColumnShift{sums});
+        reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_after,
+                    ColumnShift{sums});
         parallel_for(d.n, RemoveVerticalShift{raw(d.pred), &sums->shift, &sums->shift_before, d.grid.domain[1]});
     }
     if (keep_shift)
@@ -337,7 +337,8 @@ XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const Wal
 // v += M^-1 J^T mu_prev, and CG solves for the correction, so a few iterations reach the projection. warm_ready:
 // the XSPH pass has summed M^-1 J^T mu_prev into pos_tmp (warm_start_impulse).
 // The host queues all divergence_iterations iterations without reading a scalar: the dot products go to
-// d.cg_state, one-thread kernels form alpha and beta there, and once the solve has converged or stalled
+// d.cg_state, the reduction's last block forms the new direction's weight and the stop flag there (CgBegin,
+// CgNextDirection as reduce_into's then), each update thread forms alpha, and once the solve has converged or stalled
 // (state.stop) the remaining kernels return at once (a few microseconds each instead of a wait per dot product).
 template <class Policy, bool Corrected>
 void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_ready, Vec3 gravity_dv) {
@@ -369,8 +370,7 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
     // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
     const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
-    reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);   // (r . z, r . r)
-    run_once(CgBegin{s, tol2});
+    reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots, CgBegin{s, tol2});   // (r . z, r . r)
     for (int it = 0; it < d.p.divergence_iterations; ++it) {
         const bool last = it + 1 == d.p.divergence_iterations;
         parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
@@ -383,8 +383,7 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
         // alpha = rz / p.A p; v += alpha g; r -= alpha q; mu += alpha p
         parallel_for(n, CgUpdate{s, g, last ? nullptr : q, p, v, r, mu});
         if (last) break;
-        reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots);
-        run_once(CgNextDirection{s, tol2});
+        reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots, CgNextDirection{s, tol2});
         parallel_for(n, CgDirection{s, r, diag, p});                                  // p = z + beta p
     }
 }

@@ -3,6 +3,9 @@
 // every step), the clock and the statistics. The phases (*_launch.h) read and write it; the step that runs
 // them in the paper's order is Solver::do_step (solver_impl.inl).
 #pragma once
+#include <utility>
+#include <vector>
+
 #include "launch.h"
 
 #include "adaptivity.h"
@@ -17,6 +20,30 @@
 
 namespace pbf {
 namespace PBF_BACKEND_NS {
+
+// dst[k][i] = src[k][perm[i]] for up to kFloat4 float4 arrays, kFloat float arrays and one uint array (u_src
+// nullptr: none): one pass of SolverData::permute_all. The loops run to compile-time bounds (constant indices).
+struct GatherParticles {
+    static constexpr int kFloat4 = 3, kFloat = 6;
+    const uint32_t* perm;
+    const Float4* f4_src[kFloat4] = {};
+    Float4* f4_dst[kFloat4] = {};
+    const float* f1_src[kFloat] = {};
+    float* f1_dst[kFloat] = {};
+    const uint32_t* u_src = nullptr;
+    uint32_t* u_dst = nullptr;
+    int f4 = 0, f1 = 0;
+    PBF_HD void operator()(uint32_t i) const {
+        const uint32_t j = perm[i];
+#pragma unroll
+        for (int k = 0; k < kFloat4; ++k)
+            if (k < f4) f4_dst[k][i] = f4_src[k][j];
+#pragma unroll
+        for (int k = 0; k < kFloat; ++k)
+            if (k < f1) f1_dst[k][i] = f1_src[k][j];
+        if (u_src) u_dst[i] = u_src[j];
+    }
+};
 
 struct SolverData {
     Params p;
@@ -35,6 +62,7 @@ struct SolverData {
     // Fluid particles, n of capacity slots in use. pos (w = mass), pred the predicted x* of the step.
     dvec<Float4> pos, pred, pos_tmp, vel, vel_tmp, omega;
     dvec<uint32_t> id, uint_tmp, keys, perm, cell_start, cell_end;
+    dvec<uint32_t> perm_alt;              // the sort's second value buffer (its second key buffer is uint_tmp)
     dvec<uint32_t> sub_start, sub_end;    // adaptive runs: nested sub-cell ranges (grid.h)
     dvec<float> sub_radius, cell_radius;  // adaptive runs: largest kernel radius per sub-cell and per cell
     dvec<uint32_t> nbr_count, nbr_index;  // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
@@ -101,7 +129,7 @@ struct SolverData {
         vel.resize(cap); vel_tmp.resize(cap);
         id.resize(cap); uint_tmp.resize(cap);
         lambda.resize(cap); density.resize(cap);
-        keys.resize(cap); perm.resize(cap);
+        keys.resize(cap); perm.resize(cap); perm_alt.resize(cap);
         float_tmp.resize(cap);
         step_sums.resize(1);
         if (p.neighbor_list) nbr_count.resize(cap);
@@ -128,23 +156,55 @@ struct SolverData {
     }
 
     // Permute the first n entries of every particle array by perm (gather): the neighbour sort (with the
-    // predicted positions) and the compaction after merges (with each particle's last density).
-    template <class T>
-    void permute(dvec<T>& a, dvec<T>& tmp) {
-        thrust::gather(exec(), perm.begin(), perm.begin() + n, a.begin(), tmp.begin());
-        a.swap(tmp);
-    }
+    // predicted positions) and the compaction after merges (with each particle's last density). One pass gathers
+    // as many arrays as there are free buffers of their type to gather into (GatherParticles): the scratch arrays
+    // and those the step rewrites before it reads them (omega, lambda, the conjugate gradients' r, p, q, diag);
+    // each gathered array is swapped with its buffer, which is then free again. Most scenes take one pass.
     void permute_all(bool with_pred) {
-        permute(pos, pos_tmp);
-        if (with_pred) permute(pred, pos_tmp);
-        else permute(density, float_tmp);  // compaction keeps each particle's last density
-        permute(vel, vel_tmp);
-        permute(id, uint_tmp);
-        if (p.velocity_projection) permute(cg_mu, float_tmp);
+        std::vector<dvec<Float4>*> f4 = {&pos, &vel};
+        if (with_pred) f4.push_back(&pred);
+        std::vector<dvec<float>*> f1;
+        if (!with_pred) f1.push_back(&density);   // compaction keeps each particle's last density
+        if (p.velocity_projection) f1.push_back(&cg_mu);
         if (p.thermodynamics) {
-            permute(temperature, float_tmp);
-            permute(vapor, float_tmp);
-            permute(cloud, float_tmp);
+            f1.push_back(&temperature);
+            f1.push_back(&vapor);
+            f1.push_back(&cloud);
+        }
+        std::vector<dvec<Float4>*> free4 = {&pos_tmp, &vel_tmp};
+        if (p.vorticity > 0.0f) free4.push_back(&omega);
+        std::vector<dvec<float>*> free1 = {&float_tmp, &lambda};
+        if (p.velocity_projection) {
+            free1.push_back(&cg_r);
+            free1.push_back(&cg_p);
+            free1.push_back(&cg_q);
+            free1.push_back(&cg_diag);
+        }
+        std::size_t next4 = 0, next1 = 0;
+        bool id_done = false;
+        while (next4 < f4.size() || next1 < f1.size() || !id_done) {
+            GatherParticles g{raw(perm)};
+            std::vector<std::pair<dvec<Float4>*, dvec<Float4>*>> swaps4;
+            std::vector<std::pair<dvec<float>*, dvec<float>*>> swaps1;
+            for (std::size_t k = 0; k < free4.size() && k < GatherParticles::kFloat4 && next4 < f4.size(); ++k, ++next4) {
+                g.f4_src[g.f4] = raw(*f4[next4]);
+                g.f4_dst[g.f4++] = raw(*free4[k]);
+                swaps4.push_back({f4[next4], free4[k]});
+            }
+            for (std::size_t k = 0; k < free1.size() && k < GatherParticles::kFloat && next1 < f1.size(); ++k, ++next1) {
+                g.f1_src[g.f1] = raw(*f1[next1]);
+                g.f1_dst[g.f1++] = raw(*free1[k]);
+                swaps1.push_back({f1[next1], free1[k]});
+            }
+            if (!id_done) {
+                g.u_src = raw(id);
+                g.u_dst = raw(uint_tmp);
+            }
+            parallel_for(n, g);
+            for (auto& s : swaps4) s.first->swap(*s.second);
+            for (auto& s : swaps1) s.first->swap(*s.second);
+            if (!id_done) id.swap(uint_tmp);
+            id_done = true;
         }
     }
 };
