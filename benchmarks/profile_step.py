@@ -45,6 +45,12 @@ def kernel_name(name: str) -> str:
     m = re.search(r"once_kernel<(?:pbf::|cuda_backend::)(\w+)", name)
     if m:
         return "once " + m.group(1)
+    m = re.search(r"reduce_kernel<(?:pbf::|cuda_backend::)(\w+)", name)   # named by the functor it sums
+    if m:
+        return "reduction " + m.group(1)
+    m = re.search(r"team_kernel<(?:pbf::|cuda_backend::)(\w+)", name)
+    if m:
+        return m.group(1)
     m = re.search(r"(?:pbf::|cuda_backend::)(\w+)>", name)
     if m:
         return "reduction " + m.group(1)

@@ -14,6 +14,8 @@ NCU = '''==PROF== Connected to process 1
 "2","1","python3","h","void cuda_backend::for_each_kernel<cuda_backend::Predict>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","usecond","1"
 "3","1","python3","h","void cub::detail::radix_sort::DeviceRadixSortOnesweepKernel<int>(int)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","1000"
 "4","1","python3","h","void cuda_backend::once_kernel<cuda_backend::CgStepSize>(T1)","1","7","(1, 1, 1)","(1, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","2000"
+"5","1","python3","h","void cuda_backend::reduce_kernel<cuda_backend::CgResidualDots, pbf::Double2, pbf::Double2Add, cuda_backend::CgNextDirection>(unsigned int, T1, T2, T3, T2 *, T2 *, T4)","1","7","(256, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","3000"
+"6","1","python3","h","void cuda_backend::team_kernel<cuda_backend::MergePass>(unsigned int, T1)","1","7","(128, 1, 1)","(8, 1, 1)","0","9.0","Command line profiler metrics","gpu__time_duration.sum","ns","500"
 '''
 
 
@@ -25,5 +27,7 @@ def test_kernels_are_summed_by_name_and_units(tmp_path):
     assert t.loc["Predict", "us"] == pytest.approx(1.0)
     assert t.loc["Thrust/CUB DeviceRadixSortOnesweepKernel", "us"] == pytest.approx(1.0)
     assert t.loc["once CgStepSize", "us"] == pytest.approx(2.0)     # a one-thread kernel (run_once), not a reduction
+    assert t.loc["reduction CgResidualDots", "us"] == pytest.approx(3.0)   # by the functor summed, not its finisher
+    assert t.loc["MergePass", "us"] == pytest.approx(0.5)
     assert t["share"].sum() == pytest.approx(1.0, abs=1e-3)
     assert (t["commit"] == "abc").all()
