@@ -328,6 +328,75 @@ void reduce_into(std::size_t n, const F& f, T init, Op op, T* out, const Then& t
 #endif
 }
 
+// work(i) for i in [0, n), then the op-reduction of value(i) into *out and then() as reduce_into does: on the GPU in
+// one pass (each thread reads value(i) right after its own work(i); each block of 128 reduces its values in a fixed
+// tree into a partial, and one block of 1024 threads reduces the partials in block order and a fixed tree), so the
+// reduction reads no array again; on the CPU parallel_for, then reduce_into.
+#ifdef PBF_BACKEND_CUDA
+constexpr unsigned kSumBlock = 128;
+constexpr unsigned kPartialThreads = 1024;
+
+template <class W, class V, class T, class Op>
+__global__ void PBF_LAUNCH_BOUNDS for_each_sum_kernel(uint32_t n, W work, V value, T init, Op op, T* partial) {
+    __shared__ alignas(T) unsigned char storage[sizeof(T) * kSumBlock];
+    T* s = reinterpret_cast<T*>(storage);
+    wait_for_prior_grids();
+    const uint32_t i = blockIdx.x * kSumBlock + threadIdx.x;
+    T v = init;
+    if (i < n) {
+        work(i);
+        v = value(i);
+    }
+    s[threadIdx.x] = v;
+    __syncthreads();
+    for (unsigned w = kSumBlock / 2; w > 0; w >>= 1) {
+        if (threadIdx.x < w) s[threadIdx.x] = op(s[threadIdx.x], s[threadIdx.x + w]);
+        __syncthreads();
+    }
+    if (threadIdx.x == 0) partial[blockIdx.x] = s[0];
+}
+
+template <class T, class Op, class Then>
+__global__ void __launch_bounds__(kPartialThreads) reduce_partials_kernel(uint32_t blocks, const T* partial, T init, Op op,
+                                                                         T* out, Then then) {
+    __shared__ alignas(T) unsigned char storage[sizeof(T) * kPartialThreads];
+    T* s = reinterpret_cast<T*>(storage);
+    wait_for_prior_grids();
+    const unsigned t = threadIdx.x;
+    T acc = init;
+#pragma unroll 8
+    for (uint32_t b = t; b < blocks; b += kPartialThreads) acc = op(acc, partial[b]);
+    s[t] = acc;
+    __syncthreads();
+    for (unsigned w = kPartialThreads / 2; w > 0; w >>= 1) {
+        if (t < w) s[t] = op(s[t], s[t + w]);
+        __syncthreads();
+    }
+    if (t == 0) {
+        *out = s[0];
+        then();
+    }
+}
+#endif
+
+template <class W, class V, class T, class Op, class Then = NoFinish>
+void parallel_for_sum(std::size_t n, const W& work, const V& value, T init, Op op, T* out, const Then& then = Then{}) {
+#ifdef PBF_BACKEND_CUDA
+    const unsigned blocks = unsigned(n == 0 ? 1 : (n + kSumBlock - 1) / kSumBlock);
+    const std::size_t bytes = sizeof(T) * blocks;
+    char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
+    T* partial = reinterpret_cast<T*>(tmp);
+    launch("parallel_for_sum", for_each_sum_kernel<W, V, T, Op>, blocks, kSumBlock, uint32_t(n), work, value, init, op,
+           partial);
+    launch("parallel_for_sum", reduce_partials_kernel<T, Op, Then>, 1, kPartialThreads, blocks,
+           static_cast<const T*>(partial), init, op, out, then);
+    temp_allocator().deallocate(tmp, bytes);
+#else
+    parallel_for(n, work);
+    reduce_into(n, value, init, op, out, then);
+#endif
+}
+
 #ifdef PBF_BACKEND_CUDA
 template <class F>
 __global__ void once_kernel(F f) {
