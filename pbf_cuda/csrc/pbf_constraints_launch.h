@@ -365,32 +365,25 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
     // v += dt gravity (where there is gravity), then v += M^-1 J^T mu_prev: one pass
     const bool gravity = gravity_dv.x != 0.0f || gravity_dv.y != 0.0f || gravity_dv.z != 0.0f;
     parallel_for(n, AddVelocity{warm_ready ? raw(d.pos_tmp) : g, v, gravity_dv, gravity});
+    // r = -J v, z = r / diag, p = z
+    parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p});
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
     // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
     const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
-    // Each dot product is summed by the pass that writes its vectors (parallel_for_sum).
-    const Double2 zero{0.0, 0.0};
-    // r = -J v, z = r / diag, p = z; (r . z, r . r)
-    parallel_for_sum(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p}, CgDots{r, p, r, r},
-                     zero, Double2Add{}, &s->dots, CgBegin{s, tol2});
+    reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots, CgBegin{s, tol2});   // (r . z, r . r)
     for (int it = 0; it < d.p.divergence_iterations; ++it) {
         const bool last = it + 1 == d.p.divergence_iterations;
+        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
         if (!last) {
-            parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
-            // q = A p; (p . A p, p . D p)
-            parallel_for_sum(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop},
-                             CgDirectionDots{p, q, diag}, zero, Double2Add{}, &s->direction);
-        } else {   // g = M^-1 J^T p; p . A p = sum m |g|^2: the residual after the last step is not needed
-            parallel_for_sum(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop},
-                             CgDirectionEnergy{fl.pos, g, p, diag}, zero, Double2Add{}, &s->direction);
+            parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
+            reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);
+        } else {   // p . A p = sum m |g|^2: the residual after the last step is not needed
+            reduce_into(n, CgDirectionEnergy{fl.pos, g, p, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);
         }
         // alpha = rz / p.A p; v += alpha g; r -= alpha q; mu += alpha p
-        if (last) {
-            parallel_for(n, CgUpdate{s, g, nullptr, p, v, r, mu});
-            break;
-        }
-        parallel_for_sum(n, CgUpdate{s, g, q, p, v, r, mu}, CgResidualDots{r, diag}, zero, Double2Add{}, &s->dots,
-                         CgNextDirection{s, tol2});
+        parallel_for(n, CgUpdate{s, g, last ? nullptr : q, p, v, r, mu});
+        if (last) break;
+        reduce_into(n, CgResidualDots{r, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->dots, CgNextDirection{s, tol2});
         parallel_for(n, CgDirection{s, r, diag, p});                                  // p = z + beta p
     }
 }
