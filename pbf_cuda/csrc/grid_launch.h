@@ -174,11 +174,27 @@ bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
         return false;
     }
     if (entries > d.nbr_index.size()) {
-        try {
-            d.nbr_index.clear();
-            d.nbr_index.shrink_to_fit();
-            d.nbr_index.resize(std::size_t(entries));
-        } catch (const std::bad_alloc&) {
+        // Rows for every particle slot where they fit the index range: an adaptive run's particle count grows with
+        // its splits between steps, and rows sized to this step's count were freed and allocated again (a device
+        // synchronisation and a fill of the whole array) at every new largest count. Rows for this step's count
+        // where the slots' do not fit in memory.
+        const unsigned long long slots = (unsigned long long)std::max<std::size_t>(d.capacity, n) * d.nbr_width;
+        bool done = false;
+        for (unsigned long long want : {slots <= 0xffffffffull ? slots : entries, entries}) {
+            try {
+                d.nbr_index.clear();
+                d.nbr_index.shrink_to_fit();
+                d.nbr_index.resize(std::size_t(want));
+                done = true;
+                break;
+            } catch (const std::bad_alloc&) {
+#ifdef PBF_BACKEND_CUDA
+                cudaGetLastError();   // the failed allocation is not the step's error
+#endif
+                continue;
+            }
+        }
+        if (!done) {
             d.give_up_lists();
             return false;
         }
