@@ -148,16 +148,16 @@ struct DecideSplits {
         // Priority: larger E first; ties (e.g. a uniform cloud) broken by a hash of (id, step), so that
         // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
         uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
-        bool lost = false;
+        const int ci[3] = {cell_coord(grid, xi.x, 0), cell_coord(grid, xi.y, 1), cell_coord(grid, xi.z, 2)};
         // Split candidates have not moved since the sort (merges move merge candidates only): no slack.
-        for_each_neighbor_strided(grid, fluid, xi, ap.conflict_radius, 0.0f, team.rank(), Team::kSize,
-                                  [&](uint32_t j, Vec3, float) {
-            if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return;
+        const bool lost = team_any_in_block(team, grid, fluid, ci, xi, ap.conflict_radius, 0.0f,
+                                            [&](uint32_t j, Vec3, float) {
+            if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return false;
             float ej = energy[j];
             uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
-            if (ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)))) lost = true;
+            return ej > ei || (ej == ei && (hj > hi_rank || (hj == hi_rank && id[j] < idi)));
         });
-        if (team.any(lost)) return;
+        if (lost) return;
         Vec3 off = (0.5f * ap.spacing[l + 1]) * split_direction(idi, step);
         Vec3 c1 = xi + off, c2 = xi - off;
         float r_min = ap.min_distance * radii.h[l + 1];
@@ -171,15 +171,14 @@ struct DecideSplits {
         // Only particles within |offset| + r_min of the parent can come within r_min of a child. Merged
         // particles of this step sit at their midpoints, possibly outside their cell's box: slack.
         float reach = 0.5f * ap.spacing[l + 1] + r_min;
-        bool blocked = false;
-        for_each_neighbor_strided(grid, fluid, xi, reach, radii.moved_slack(), team.rank(), Team::kSize,
-                                  [&](uint32_t j, Vec3, float) {
-            if (j == i || (flags[j] & kDead)) return;
+        const bool blocked = team_any_in_block(team, grid, fluid, ci, xi, reach, radii.moved_slack(),
+                                               [&](uint32_t j, Vec3, float) {
+            if (j == i || (flags[j] & kDead)) return false;
             Vec3 xj = xyz(fluid.pos[j]);
             Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
-            if (dot(d1, d1) < r2_min || dot(d2, d2) < r2_min) blocked = true;
+            return dot(d1, d1) < r2_min || dot(d2, d2) < r2_min;
         });
-        if (team.any(blocked)) return;
+        if (blocked) return;
         if (team.rank() == 0) {
             count[t] = 1;
             flags[i] = fi | kSplitNow;
@@ -304,13 +303,10 @@ struct MergePass {
                 Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
                 Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
                 float r_min = ap.min_distance * radii.h[l - 1];
-                bool blocked = false;
-                for_each_in_block_strided(grid, fluid, c, mid, r_min, radii.moved_slack(), team.rank(), Team::kSize,
-                                          [&](uint32_t k, Vec3, float) {
-                                              if (k == i || k == best || (flags[k] & kDead)) return;
-                                              blocked = true;
-                                          });
-                if (team.any(blocked)) continue;
+                if (team_any_in_block(team, grid, fluid, c, mid, r_min, radii.moved_slack(), [&](uint32_t k, Vec3, float) {
+                        return !(k == i || k == best || (flags[k] & kDead));
+                    }))
+                    continue;
                 if (team.rank() == 0) {
                     uint32_t j = best;
                     Float4 vi = vel[i], vj = vel[j];

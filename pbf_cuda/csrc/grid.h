@@ -330,6 +330,90 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
     for_each_in_block_strided(g, set, c, q, r_max, 0.0f, 0u, 1u, f);
 }
 
+// A team's vote: whether pred(j, r, r2) holds for some particle j that for_each_in_block_strided(g, set, c, q, r_max,
+// slack, ...) visits (the same cells, pruned the same way, and |r| < r_max). Splitting and merging ask only whether
+// any such particle exists, so the order of the visits does not matter. A team of one walks the cells; a warp
+// flattens the block: lane l < 27 takes one cell's range, a scan over the lanes numbers the block's particles, and
+// the lanes take 32 of them at a time, so the cells' loads are issued together instead of one cell after another.
+template <class Team, class Pred>
+PBF_HD inline bool team_any_in_block(const Team& team, const GridGeometry& g, const CellRanges& set, const int c[3],
+                                     Vec3 q, float r_max, float slack, Pred&& pred) {
+    bool hit = false;
+    for_each_in_block_strided(g, set, c, q, r_max, slack, team.rank(), Team::kSize, [&](uint32_t j, Vec3 r, float r2) {
+        if (pred(j, r, r2)) hit = true;
+    });
+    return team.any(hit);
+}
+
+#if defined(__CUDACC__)
+template <class Pred>
+PBF_HD inline bool team_any_in_block(const WarpTeam& team, const GridGeometry& g, const CellRanges& set, const int c[3],
+                                     Vec3 q, float r_max, float slack, Pred&& pred) {
+#if defined(__CUDA_ARCH__)
+    constexpr uint32_t kAll = 0xffffffffu;
+    const uint32_t lane = team.rank();
+    const float r2max = r_max * r_max;
+    const float r2prune = (r_max + slack) * (r_max + slack);
+    uint32_t b = 0, cnt = 0;
+    if (lane < 27) {
+        const int d[3] = {int(lane % 3u) - 1, int(lane / 3u % 3u) - 1, int(lane / 9u) - 1};
+        int cc[3];
+        bool inside = true;
+        float e = 0.0f;   // the squared gap to the cell, summed z, y, x as for_each_in_block_strided prunes
+        for (int a = 2; a >= 0; --a) {
+            float t = (component(q, a) - g.origin[a]) * g.inv_cell[a] - float(c[a]);
+            if (g.periodic[a]) t -= float(g.dims[a]) * rintf(t / float(g.dims[a]));
+            float lo = float(d[a]) - t, hi = t - float(d[a] + 1);
+            float m = lo > hi ? lo : hi;
+            float ea = (m > 0.0f ? m : 0.0f) * g.cell[a];
+            e = e + ea * ea;
+            int ca = c[a] + d[a];
+            if (g.periodic[a]) ca = ca < 0 ? ca + g.dims[a] : (ca >= g.dims[a] ? ca - g.dims[a] : ca);
+            else if (ca < 0 || ca >= g.dims[a]) inside = false;
+            cc[a] = ca;
+        }
+        if (inside && e < r2prune) {
+            const uint32_t cell = cell_index(g, cc[0], cc[1], cc[2]);
+            b = set.start[cell];
+            cnt = set.end[cell] - b;
+        }
+    }
+    uint32_t incl = cnt;   // inclusive scan of the counts over the lanes
+    for (uint32_t o = 1; o < 32u; o <<= 1) {
+        const uint32_t t = __shfl_up_sync(kAll, incl, o);
+        if (lane >= o) incl += t;
+    }
+    const uint32_t excl = incl - cnt;
+    const uint32_t total = __shfl_sync(kAll, incl, 31);
+    bool hit = false;
+    for (uint32_t base = 0; base < total; base += 32u) {
+        const uint32_t k = base + lane;
+        uint32_t s = 0;   // the lane whose cell holds particle k: the first with incl > k
+        for (uint32_t step = 16; step > 0; step >>= 1) {
+            const uint32_t v = __shfl_sync(kAll, incl, int(s + step - 1u));
+            if (v <= k) s += step;
+        }
+        const uint32_t bs = __shfl_sync(kAll, b, int(s));
+        const uint32_t es = __shfl_sync(kAll, excl, int(s));
+        if (k < total) {
+            const uint32_t j = bs + (k - es);
+            const Float4 pj = set.pos[j];
+            Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
+            float r2 = dot(r, r);
+            if (r2 < r2max && pred(j, r, r2)) hit = true;
+        }
+    }
+    return team.any(hit);
+#else
+    bool hit = false;   // host pass of nvcc only: teams run on the device
+    for_each_in_block_strided(g, set, c, q, r_max, slack, team.rank(), WarpTeam::kSize, [&](uint32_t j, Vec3 r, float r2) {
+        if (pred(j, r, r2)) hit = true;
+    });
+    return team.any(hit);
+#endif
+}
+#endif
+
 // Calls f(j, r_ij, r2) for every particle j of `set` with |r_ij| < r_max (r_ij = x_i - x_j,
 // minimum image), including i itself when it belongs to the set (r2 = 0). r_max <= cell side.
 template <class F>
@@ -338,12 +422,5 @@ PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& se
     for_each_in_block(g, set, c, xi, r_max, f);
 }
 
-// for_each_neighbor with the slack and team striding of for_each_in_block_strided.
-template <class F>
-PBF_HD inline void for_each_neighbor_strided(const GridGeometry& g, const CellRanges& set, Vec3 xi, float r_max,
-                                             float slack, uint32_t first, uint32_t stride, F&& f) {
-    int c[3] = {cell_coord(g, xi.x, 0), cell_coord(g, xi.y, 1), cell_coord(g, xi.z, 2)};
-    for_each_in_block_strided(g, set, c, xi, r_max, slack, first, stride, f);
-}
 
 }  // namespace pbf
