@@ -422,5 +422,4 @@ PBF_HD inline void for_each_neighbor(const GridGeometry& g, const CellRanges& se
     for_each_in_block(g, set, c, xi, r_max, f);
 }
 
-
 }  // namespace pbf

@@ -8,6 +8,7 @@
 //   reduce_into(n, f, init, op, out[, then])  the same into *out in device memory: the host does not wait (one
 //                               launch); then() runs once after the value is written
 //   run_once(f)                 f() once: a one-thread kernel on the GPU (scalar work on device memory)
+//   sort_pairs(keys, values, ...) stable sort of key-value pairs by the keys' lowest bits (CUB's radix sort, Thrust)
 //   exec()                      the execution policy of every Thrust call (sort, scan, fill, gather, copy_if)
 //
 // On the GPU every call is asynchronous on the default stream: exec() is Thrust's par_nosync with a caching
@@ -30,7 +31,6 @@
 #include <thrust/gather.h>
 #include <thrust/iterator/counting_iterator.h>
 #include <thrust/scan.h>
-#include <thrust/sequence.h>
 #include <thrust/sort.h>
 #include <thrust/transform_reduce.h>
 
@@ -49,11 +49,8 @@
 #include "common.h"
 #include "solver_api.h"
 
-#include <thrust/iterator/transform_iterator.h>
-
 #ifdef PBF_BACKEND_CUDA
 #include <cub/device/device_radix_sort.cuh>
-#include <cub/device/device_reduce.cuh>
 #include <cuda_runtime.h>
 #endif
 
@@ -138,7 +135,8 @@ inline auto exec() { return thrust::device; }
 // until the grids before it have completed and their writes are visible, so it reads exactly what it read under
 // full serialisation: the results are the same to the bit. No kernel signals its dependants early
 // (griddepcontrol.launch_dependents): tried at each kernel's start, the next kernel's blocks then sat on the SMs
-// beside the running ones and made the 100k-particle steps 3-7% slower (README, "Speed of the step", change 10).
+// beside the running ones and made the solver phase of the 100k-particle steps 6-16% slower (README, "Speed of the
+// step", change 10).
 // Kernels that Thrust launches (sorts, scans) keep the full serialisation. Older GPUs launch as before.
 // CLOUDPBF_PDL=0 in the environment switches it off (read once per process), for comparisons.
 __device__ __forceinline__ void wait_for_prior_grids() {
