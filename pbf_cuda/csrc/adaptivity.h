@@ -149,9 +149,9 @@ struct DecideSplits {
         // about one in every conflict neighbourhood wins each step wherever the particles are numbered.
         uint32_t hi_rank = hash_u32(idi ^ hash_u32(step + 0x51ed27u));
         const int ci[3] = {cell_coord(grid, xi.x, 0), cell_coord(grid, xi.y, 1), cell_coord(grid, xi.z, 2)};
+        const BlockSearch<Team> block(team, grid, fluid, ci);   // both searches below look around the parent
         // Split candidates have not moved since the sort (merges move merge candidates only): no slack.
-        const bool lost = team_any_in_block(team, grid, fluid, ci, xi, ap.conflict_radius, 0.0f,
-                                            [&](uint32_t j, Vec3, float) {
+        const bool lost = block.any(team, xi, ap.conflict_radius, 0.0f, [&](uint32_t j, Vec3, float) {
             if (j == i || !(flags[j] & kSplitCandidate) || (flags[j] & (kDead | kMergedNow))) return false;
             float ej = energy[j];
             uint32_t hj = hash_u32(id[j] ^ hash_u32(step + 0x51ed27u));
@@ -171,8 +171,7 @@ struct DecideSplits {
         // Only particles within |offset| + r_min of the parent can come within r_min of a child. Merged
         // particles of this step sit at their midpoints, possibly outside their cell's box: slack.
         float reach = 0.5f * ap.spacing[l + 1] + r_min;
-        const bool blocked = team_any_in_block(team, grid, fluid, ci, xi, reach, radii.moved_slack(),
-                                               [&](uint32_t j, Vec3, float) {
+        const bool blocked = block.any(team, xi, reach, radii.moved_slack(), [&](uint32_t j, Vec3, float) {
             if (j == i || (flags[j] & kDead)) return false;
             Vec3 xj = xyz(fluid.pos[j]);
             Vec3 d1 = min_image(grid, c1 - xj), d2 = min_image(grid, c2 - xj);
@@ -283,34 +282,44 @@ struct MergePass {
         int c[3] = {offset[0] + 3 * ax, offset[1] + 3 * ay, offset[2] + 3 * az};
         uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
         const uint32_t end = fluid.end[cell];
+        const BlockSearch<Team> block(team, grid, fluid, c);   // every too-close search of this cell's pairs
         // The cell's particles in chunks of the team's size: one vote finds the chunk's merge candidates with a
         // partner (neither the candidate mark nor the partner changes during the passes), then those are taken one
-        // at a time in index order, their flags read afresh, exactly as a walk over every particle would.
+        // at a time in index order, their flags read afresh, exactly as a walk over every particle would. Each
+        // lane reads its own candidate's position and its partner's beforehand: only this team writes the block
+        // during the pass, and it moves a particle only by merging it, which its flags then show.
         for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
             const uint32_t mine = chunk + team.rank();
-            uint32_t pending = team.ballot(mine < end && (flags[mine] & kMergeCandidate) &&
-                                           partner[mine] != 0xffffffffu);
-            for (; pending; pending &= pending - 1u) {
-                const uint32_t i = chunk + lowest_set_bit(pending);
-                // Every lane reads the same values here: the only writes are lane 0's, fenced by sync().
-                uint8_t fi = flags[i];
-                if (fi & (kDead | kMergedNow)) continue;
-                Float4 pi = pos[i];
+            const bool has_pair = mine < end && (flags[mine] & kMergeCandidate) && partner[mine] != 0xffffffffu;
+            uint32_t my_partner = 0;
+            Float4 my_pos{}, my_partner_pos{};
+            if (has_pair) {
+                my_partner = partner[mine];
+                my_pos = pos[mine];
+                my_partner_pos = pos[my_partner];
+            }
+            for (uint32_t pending = team.ballot(has_pair); pending; pending &= pending - 1u) {
+                const uint32_t lane = lowest_set_bit(pending);
+                const uint32_t i = chunk + lane;
+                const uint32_t best = team.broadcast(my_partner, lane);
+                // Every lane reads the same flags here: the only writes are lane 0's, fenced by sync().
+                const uint8_t fi = flags[i];
+                if ((fi | flags[best]) & (kDead | kMergedNow)) continue;
+                const Float4 pi = team.broadcast(my_pos, lane);
+                const Float4 pj = team.broadcast(my_partner_pos, lane);
                 Vec3 xi = xyz(pi);
                 int l = radii.level_of_mass(pi.w);
-                uint32_t best = partner[i];
-                if (flags[best] & (kDead | kMergedNow)) continue;
-                Vec3 best_r = min_image(grid, xi - xyz(pos[best]));
+                Vec3 best_r = min_image(grid, xi - xyz(pj));
                 Vec3 mid = xi - 0.5f * best_r;  // x_i - (x_i - x_j)/2, minimum image
                 float r_min = ap.min_distance * radii.h[l - 1];
-                if (team_any_in_block(team, grid, fluid, c, mid, r_min, radii.moved_slack(), [&](uint32_t k, Vec3, float) {
+                if (block.any(team, mid, r_min, radii.moved_slack(), [&](uint32_t k, Vec3, float) {
                         return !(k == i || k == best || (flags[k] & kDead));
                     }))
                     continue;
                 if (team.rank() == 0) {
                     uint32_t j = best;
                     Float4 vi = vel[i], vj = vel[j];
-                    pos[i] = make_float4(wrap_position(grid, mid), pi.w + pos[j].w);  // exact: 2 m_l = m_{l-1}
+                    pos[i] = make_float4(wrap_position(grid, mid), pi.w + pj.w);  // exact: 2 m_l = m_{l-1}
                     vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
                     if (temperature) {
                         temperature[i] = 0.5f * (temperature[i] + temperature[j]);

@@ -44,6 +44,8 @@ struct SerialTeam {
     PBF_HD bool any(bool p) const { return p; }
     PBF_HD uint32_t ballot(bool p) const { return p ? 1u : 0u; }
     PBF_HD void sync() const {}
+    template <class T>
+    PBF_HD T broadcast(const T& v, uint32_t) const { return v; }
 };
 
 #if defined(__CUDACC__)
@@ -55,10 +57,23 @@ struct WarpTeam {
     __device__ bool any(bool p) const { return __any_sync(0xffffffffu, p); }
     __device__ uint32_t ballot(bool p) const { return __ballot_sync(0xffffffffu, p); }
     __device__ void sync() const { __syncwarp(); }
+    // Lane src's v, for every lane (v shuffled as 32-bit words).
+    template <class T>
+    __device__ T broadcast(const T& v, uint32_t src) const {
+        static_assert(sizeof(T) % 4 == 0, "broadcast: a type of whole 32-bit words");
+        uint32_t w[sizeof(T) / 4];
+        memcpy(w, &v, sizeof(T));
+        for (uint32_t k = 0; k < sizeof(T) / 4; ++k) w[k] = __shfl_sync(0xffffffffu, w[k], int(src));
+        T out;
+        memcpy(&out, w, sizeof(T));
+        return out;
+    }
 #else
     bool any(bool p) const { return p; }  // host pass of nvcc only; teams run on the device
     uint32_t ballot(bool p) const { return p ? 1u : 0u; }
     void sync() const {}
+    template <class T>
+    T broadcast(const T& v, uint32_t) const { return v; }
 #endif
 };
 #endif

@@ -184,6 +184,31 @@ PBF_HD inline void for_each_in_range(const GridGeometry& g, const Float4* pos, u
     }
 }
 
+// ---- the block of cells c +- 1: the searches' pruning ----------------------------------------
+// q's offset from the lower corner of cell c along axis a, in cells (minimum image on periodic axes).
+PBF_HD inline float offset_in_cells(const GridGeometry& g, Vec3 q, const int c[3], int a) {
+    float t = (component(q, a) - g.origin[a]) * g.inv_cell[a] - float(c[a]);
+    if (g.periodic[a]) t -= float(g.dims[a]) * rintf(t / float(g.dims[a]));
+    return t;
+}
+
+// Squared distance (m^2) along axis a from a point at offset rel (offset_in_cells) to the slab of cells at offset d.
+PBF_HD inline float slab_gap2(const GridGeometry& g, int a, float rel, int d) {
+    float lo = float(d) - rel, hi = rel - float(d + 1);
+    float m = lo > hi ? lo : hi;   // max(0, lo, hi) without fmaxf, a library call on the CPU (NaN-aware)
+    float e = (m > 0.0f ? m : 0.0f) * g.cell[a];
+    return e * e;
+}
+
+// Coordinate c + d of the neighbouring cell along axis a, wrapped on periodic axes; false beyond a wall.
+PBF_HD inline bool neighbor_coord(const GridGeometry& g, int a, int c, int d, int& out) {
+    int x = c + d;
+    if (g.periodic[a]) x = x < 0 ? x + g.dims[a] : (x >= g.dims[a] ? x - g.dims[a] : x);
+    else if (x < 0 || x >= g.dims[a]) return false;
+    out = x;
+    return true;
+}
+
 // ---- nested sub-cells for particles of several radii (adaptive runs) --------------------------
 // A cell of side >= h0 (the level-0 radius) is split into 2 x 2 x 2 sub-cells of side >= h0 / 2, the finest
 // radius of three levels (h_3 = h0 / 2). Particles are sorted by the nested key cell * 8 + sub, so each
@@ -281,42 +306,29 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
     }
 }
 
+// Calls f(j, r, r2) for the particles j = start + first, start + first + stride, ... of each cell of the block
+// c +- 1 whose box lies within r_max + slack of q (z, then y, then x offsets), where r2 = |q - x_j|^2 < r_max^2.
+// slack lets particles that moved up to that far out of the cell they were sorted into be found.
 template <class F>
 PBF_HD inline void for_each_in_block_strided(const GridGeometry& g, const CellRanges& set, const int c[3], Vec3 q,
                                              float r_max, float slack, uint32_t first, uint32_t stride, F&& f) {
     const float r2max = r_max * r_max;
     const float r2prune = (r_max + slack) * (r_max + slack);
-    // q relative to the lower corner of cell c, in cells (minimum image on periodic axes).
-    float rel[3];
-    for (int a = 0; a < 3; ++a) {
-        float t = (component(q, a) - g.origin[a]) * g.inv_cell[a] - float(c[a]);
-        if (g.periodic[a]) t -= float(g.dims[a]) * rintf(t / float(g.dims[a]));
-        rel[a] = t;
-    }
-    // Squared distance (m^2) from q to the slab of cells at offset d along axis a.
-    auto gap2 = [&](int a, int d) {
-        float lo = float(d) - rel[a], hi = rel[a] - float(d + 1);
-        float m = lo > hi ? lo : hi;   // max(0, lo, hi) without fmaxf, a library call on the CPU (NaN-aware)
-        float e = (m > 0.0f ? m : 0.0f) * g.cell[a];
-        return e * e;
-    };
+    const float rel[3] = {offset_in_cells(g, q, c, 0), offset_in_cells(g, q, c, 1), offset_in_cells(g, q, c, 2)};
     for (int dz = -1; dz <= 1; ++dz) {
-        int cz = c[2] + dz;
-        if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
-        else if (cz < 0 || cz >= g.dims[2]) continue;
-        float ez = gap2(2, dz);
+        int cz;
+        if (!neighbor_coord(g, 2, c[2], dz, cz)) continue;
+        float ez = slab_gap2(g, 2, rel[2], dz);
         if (ez >= r2prune) continue;
         for (int dy = -1; dy <= 1; ++dy) {
-            int cy = c[1] + dy;
-            if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
-            else if (cy < 0 || cy >= g.dims[1]) continue;
-            float ey = ez + gap2(1, dy);
+            int cy;
+            if (!neighbor_coord(g, 1, c[1], dy, cy)) continue;
+            float ey = ez + slab_gap2(g, 1, rel[1], dy);
             if (ey >= r2prune) continue;
             for (int dx = -1; dx <= 1; ++dx) {
-                int cx = c[0] + dx;
-                if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
-                else if (cx < 0 || cx >= g.dims[0]) continue;
-                if (ey + gap2(0, dx) >= r2prune) continue;
+                int cx;
+                if (!neighbor_coord(g, 0, c[0], dx, cx)) continue;
+                if (ey + slab_gap2(g, 0, rel[0], dx) >= r2prune) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 for_each_in_range(g, set.pos, set.start[cell] + first, set.end[cell], stride, q, r2max, f);
             }
@@ -330,88 +342,100 @@ PBF_HD inline void for_each_in_block(const GridGeometry& g, const CellRanges& se
     for_each_in_block_strided(g, set, c, q, r_max, 0.0f, 0u, 1u, f);
 }
 
-// A team's vote: whether pred(j, r, r2) holds for some particle j that for_each_in_block_strided(g, set, c, q, r_max,
+// A team's searches of the block c +- 1, for the too-close tests of splitting and merging: any(team, q, r_max, slack,
+// pred) votes whether pred(j, r, r2) holds for some particle j that for_each_in_block_strided(g, set, c, q, r_max,
 // slack, ...) visits (the same cells, pruned the same way, and |r| < r_max). Splitting and merging ask only whether
-// any such particle exists, so the order of the visits does not matter. A team of one walks the cells; a warp
-// flattens the block: lane l < 27 takes one cell's range, a scan over the lanes numbers the block's particles, and
-// the lanes take 32 of them at a time, so the cells' loads are issued together instead of one cell after another.
-template <class Team, class Pred>
-PBF_HD inline bool team_any_in_block(const Team& team, const GridGeometry& g, const CellRanges& set, const int c[3],
-                                     Vec3 q, float r_max, float slack, Pred&& pred) {
-    bool hit = false;
-    for_each_in_block_strided(g, set, c, q, r_max, slack, team.rank(), Team::kSize, [&](uint32_t j, Vec3 r, float r2) {
-        if (pred(j, r, r2)) hit = true;
-    });
-    return team.any(hit);
-}
+// such a particle exists, so the order of the visits does not matter, and a search may stop at the first one.
+// A team holds one block for several searches (a split decision's two, a merge pass's candidates in one cell).
+// The generic team walks the cells at each search, its lanes striding over each cell's range.
+template <class Team>
+struct BlockSearch {
+    const GridGeometry& g;
+    const CellRanges& set;
+    int c[3];
+    PBF_HD BlockSearch(const Team&, const GridGeometry& grid, const CellRanges& ranges, const int cell[3])
+        : g(grid), set(ranges), c{cell[0], cell[1], cell[2]} {}
+    template <class Pred>
+    PBF_HD bool any(const Team& team, Vec3 q, float r_max, float slack, Pred&& pred) const {
+        bool hit = false;
+        for_each_in_block_strided(g, set, c, q, r_max, slack, team.rank(), Team::kSize, [&](uint32_t j, Vec3 r, float r2) {
+            if (pred(j, r, r2)) hit = true;
+        });
+        return team.any(hit);
+    }
+};
 
 #if defined(__CUDACC__)
-template <class Pred>
-PBF_HD inline bool team_any_in_block(const WarpTeam& team, const GridGeometry& g, const CellRanges& set, const int c[3],
-                                     Vec3 q, float r_max, float slack, Pred&& pred) {
-#if defined(__CUDA_ARCH__)
-    constexpr uint32_t kAll = 0xffffffffu;
-    const uint32_t lane = team.rank();
-    const float r2max = r_max * r_max;
-    const float r2prune = (r_max + slack) * (r_max + slack);
-    uint32_t b = 0, cnt = 0;
-    if (lane < 27) {
-        const int d[3] = {int(lane % 3u) - 1, int(lane / 3u % 3u) - 1, int(lane / 9u) - 1};
+// A warp flattens the block: lane l < 27 holds the range of cell c + (l % 3, l / 3 % 3, l / 9) - 1, read once for
+// all the team's searches. A search prunes each lane's cell against q, numbers the remaining particles by a scan
+// over the lanes, and the lanes test 2 x 32 of them at a time (two positions in flight per lane), voting after
+// each round, so that a search ends at the round that finds a particle.
+template <>
+struct BlockSearch<WarpTeam> : BlockSearch<SerialTeam> {
+    uint32_t start = 0, count = 0;   // this lane's cell range (count 0: beyond a wall, or lane >= 27)
+    PBF_HD BlockSearch(const WarpTeam& team, const GridGeometry& grid, const CellRanges& ranges, const int cell[3])
+        : BlockSearch<SerialTeam>(SerialTeam{}, grid, ranges, cell) {
+        const uint32_t lane = team.rank();
+        if (lane >= 27) return;
         int cc[3];
-        bool inside = true;
-        float e = 0.0f;   // the squared gap to the cell, summed z, y, x as for_each_in_block_strided prunes
-        for (int a = 2; a >= 0; --a) {
-            float t = (component(q, a) - g.origin[a]) * g.inv_cell[a] - float(c[a]);
-            if (g.periodic[a]) t -= float(g.dims[a]) * rintf(t / float(g.dims[a]));
-            float lo = float(d[a]) - t, hi = t - float(d[a] + 1);
-            float m = lo > hi ? lo : hi;
-            float ea = (m > 0.0f ? m : 0.0f) * g.cell[a];
-            e = e + ea * ea;
-            int ca = c[a] + d[a];
-            if (g.periodic[a]) ca = ca < 0 ? ca + g.dims[a] : (ca >= g.dims[a] ? ca - g.dims[a] : ca);
-            else if (ca < 0 || ca >= g.dims[a]) inside = false;
-            cc[a] = ca;
-        }
-        if (inside && e < r2prune) {
-            const uint32_t cell = cell_index(g, cc[0], cc[1], cc[2]);
-            b = set.start[cell];
-            cnt = set.end[cell] - b;
-        }
+        for (int a = 0; a < 3; ++a)
+            if (!neighbor_coord(g, a, c[a], lane_offset(lane, a), cc[a])) return;
+        const uint32_t k = cell_index(g, cc[0], cc[1], cc[2]);
+        start = set.start[k];
+        count = set.end[k] - start;
     }
-    uint32_t incl = cnt;   // inclusive scan of the counts over the lanes
-    for (uint32_t o = 1; o < 32u; o <<= 1) {
-        const uint32_t t = __shfl_up_sync(kAll, incl, o);
-        if (lane >= o) incl += t;
+    static PBF_HD int lane_offset(uint32_t lane, int a) {
+        return int(a == 0 ? lane % 3u : (a == 1 ? lane / 3u % 3u : lane / 9u)) - 1;
     }
-    const uint32_t excl = incl - cnt;
-    const uint32_t total = __shfl_sync(kAll, incl, 31);
-    bool hit = false;
-    for (uint32_t base = 0; base < total; base += 32u) {
-        const uint32_t k = base + lane;
-        uint32_t s = 0;   // the lane whose cell holds particle k: the first with incl > k
-        for (uint32_t step = 16; step > 0; step >>= 1) {
-            const uint32_t v = __shfl_sync(kAll, incl, int(s + step - 1u));
-            if (v <= k) s += step;
+    template <class Pred>
+    PBF_HD bool any(const WarpTeam& team, Vec3 q, float r_max, float slack, Pred&& pred) const {
+#if defined(__CUDA_ARCH__)
+        constexpr uint32_t kAll = 0xffffffffu;
+        constexpr uint32_t kRound = 2;   // positions in flight per lane
+        const uint32_t lane = team.rank();
+        const float r2max = r_max * r_max;
+        const float r2prune = (r_max + slack) * (r_max + slack);
+        uint32_t cnt = 0;
+        if (lane < 27) {
+            float e = 0.0f;   // the squared gap to the cell, summed z, y, x as for_each_in_block_strided prunes
+            for (int a = 2; a >= 0; --a) e = e + slab_gap2(g, a, offset_in_cells(g, q, c, a), lane_offset(lane, a));
+            if (e < r2prune) cnt = count;
         }
-        const uint32_t bs = __shfl_sync(kAll, b, int(s));
-        const uint32_t es = __shfl_sync(kAll, excl, int(s));
-        if (k < total) {
-            const uint32_t j = bs + (k - es);
-            const Float4 pj = set.pos[j];
-            Vec3 r = min_image(g, Vec3{q.x - pj.x, q.y - pj.y, q.z - pj.z});
-            float r2 = dot(r, r);
-            if (r2 < r2max && pred(j, r, r2)) hit = true;
+        uint32_t incl = cnt;   // inclusive scan of the counts over the lanes
+        for (uint32_t o = 1; o < 32u; o <<= 1) {
+            const uint32_t t = __shfl_up_sync(kAll, incl, o);
+            if (lane >= o) incl += t;
         }
-    }
-    return team.any(hit);
+        const uint32_t excl = incl - cnt;
+        const uint32_t total = __shfl_sync(kAll, incl, 31);
+        for (uint32_t base = 0; base < total; base += kRound * 32u) {
+            uint32_t j[kRound];
+            Float4 pj[kRound];
+            for (uint32_t u = 0; u < kRound; ++u) {
+                const uint32_t k = base + u * 32u + lane;
+                uint32_t s = 0;   // the lane whose cell holds particle k: the first with incl > k
+                for (uint32_t step = 16; step > 0; step >>= 1) {
+                    const uint32_t v = __shfl_sync(kAll, incl, int(s + step - 1u));
+                    if (v <= k) s += step;
+                }
+                j[u] = __shfl_sync(kAll, start, int(s)) + (k - __shfl_sync(kAll, excl, int(s)));
+                if (k < total) pj[u] = set.pos[j[u]];
+            }
+            bool hit = false;
+            for (uint32_t u = 0; u < kRound; ++u) {
+                if (base + u * 32u + lane >= total) continue;
+                Vec3 r = min_image(g, Vec3{q.x - pj[u].x, q.y - pj[u].y, q.z - pj[u].z});
+                float r2 = dot(r, r);
+                if (r2 < r2max && pred(j[u], r, r2)) hit = true;
+            }
+            if (team.any(hit)) return true;
+        }
+        return false;
 #else
-    bool hit = false;   // host pass of nvcc only: teams run on the device
-    for_each_in_block_strided(g, set, c, q, r_max, slack, team.rank(), WarpTeam::kSize, [&](uint32_t j, Vec3 r, float r2) {
-        if (pred(j, r, r2)) hit = true;
-    });
-    return team.any(hit);
+        return BlockSearch<SerialTeam>::any(SerialTeam{}, q, r_max, slack, pred);   // host pass of nvcc: never runs
 #endif
-}
+    }
+};
 #endif
 
 // Calls f(j, r_ij, r2) for every particle j of `set` with |r_ij| < r_max (r_ij = x_i - x_j,

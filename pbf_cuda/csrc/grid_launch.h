@@ -63,10 +63,17 @@ struct SubCellRadius {
     const uint32_t* start;
     const uint32_t* end;
     float* radius;
+    // The radius falls with the level and the level with the mass, so the largest radius is the heaviest particle's:
+    // one radius lookup per sub-cell (a lookup per particle kept the levels' radii in local memory).
     PBF_HD void operator()(uint32_t s) const {
-        float h = 0.0f;
-        for (uint32_t j = start[s]; j < end[s]; ++j) h = fmaxf(h, radii.radius_of_mass(pos[j].w));
-        radius[s] = h;
+        const uint32_t b = start[s], e = end[s];
+        if (b == e) {
+            radius[s] = 0.0f;
+            return;
+        }
+        float m = 0.0f;
+        for (uint32_t j = b; j < e; ++j) m = fmaxf(m, pos[j].w);
+        radius[s] = radii.radius_of_mass(m);
     }
 };
 
