@@ -186,19 +186,19 @@ bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
         // synchronisation and a fill of the whole array) at every new largest count. Rows for this step's count
         // where the slots' do not fit in memory.
         const unsigned long long slots = (unsigned long long)std::max<std::size_t>(d.capacity, n) * d.nbr_width;
+        const unsigned long long wants[2] = {slots <= 0xffffffffull ? slots : entries, entries};
+        const int tries = wants[0] == entries ? 1 : 2;   // uniform runs: the slots are the particles
         bool done = false;
-        for (unsigned long long want : {slots <= 0xffffffffull ? slots : entries, entries}) {
+        for (int t = 0; t < tries && !done; ++t) {
             try {
                 d.nbr_index.clear();
                 d.nbr_index.shrink_to_fit();
-                d.nbr_index.resize(std::size_t(want));
+                d.nbr_index.resize(std::size_t(wants[t]));
                 done = true;
-                break;
             } catch (const std::bad_alloc&) {
 #ifdef PBF_BACKEND_CUDA
                 cudaGetLastError();   // the failed allocation is not the step's error
 #endif
-                continue;
             }
         }
         if (!done) {

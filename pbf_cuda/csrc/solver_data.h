@@ -45,6 +45,15 @@ struct GatherParticles {
     }
 };
 
+// A list of at most N items held in place: permute_all's array lists, built at every sort without heap allocations.
+template <class T, std::size_t N>
+struct Few {
+    T item[N];
+    std::size_t size = 0;
+    void push_back(const T& t) { item[size++] = t; }
+    const T& operator[](std::size_t k) const { return item[k]; }
+};
+
 struct SolverData {
     Params p;
     GridGeometry grid{};
@@ -161,9 +170,11 @@ struct SolverData {
     // and those the step rewrites before it reads them (omega, lambda, the conjugate gradients' r, p, q, diag);
     // each gathered array is swapped with its buffer, which is then free again. Most scenes take one pass.
     void permute_all(bool with_pred) {
-        std::vector<dvec<Float4>*> f4 = {&pos, &vel};
+        Few<dvec<Float4>*, 3> f4;
+        f4.push_back(&pos);
+        f4.push_back(&vel);
         if (with_pred) f4.push_back(&pred);
-        std::vector<dvec<float>*> f1;
+        Few<dvec<float>*, 5> f1;
         if (!with_pred) f1.push_back(&density);   // compaction keeps each particle's last density
         if (p.velocity_projection) f1.push_back(&cg_mu);
         if (p.thermodynamics) {
@@ -171,9 +182,13 @@ struct SolverData {
             f1.push_back(&vapor);
             f1.push_back(&cloud);
         }
-        std::vector<dvec<Float4>*> free4 = {&pos_tmp, &vel_tmp};
+        Few<dvec<Float4>*, 3> free4;
+        free4.push_back(&pos_tmp);
+        free4.push_back(&vel_tmp);
         if (p.vorticity > 0.0f) free4.push_back(&omega);
-        std::vector<dvec<float>*> free1 = {&float_tmp, &lambda};
+        Few<dvec<float>*, 6> free1;
+        free1.push_back(&float_tmp);
+        free1.push_back(&lambda);
         if (p.velocity_projection) {
             free1.push_back(&cg_r);
             free1.push_back(&cg_p);
@@ -182,16 +197,16 @@ struct SolverData {
         }
         std::size_t next4 = 0, next1 = 0;
         bool id_done = false;
-        while (next4 < f4.size() || next1 < f1.size() || !id_done) {
+        while (next4 < f4.size || next1 < f1.size || !id_done) {
             GatherParticles g{raw(perm)};
-            std::vector<std::pair<dvec<Float4>*, dvec<Float4>*>> swaps4;
-            std::vector<std::pair<dvec<float>*, dvec<float>*>> swaps1;
-            for (std::size_t k = 0; k < free4.size() && k < GatherParticles::kFloat4 && next4 < f4.size(); ++k, ++next4) {
+            Few<std::pair<dvec<Float4>*, dvec<Float4>*>, GatherParticles::kFloat4> swaps4;
+            Few<std::pair<dvec<float>*, dvec<float>*>, GatherParticles::kFloat> swaps1;
+            for (std::size_t k = 0; k < free4.size && k < GatherParticles::kFloat4 && next4 < f4.size; ++k, ++next4) {
                 g.f4_src[g.f4] = raw(*f4[next4]);
                 g.f4_dst[g.f4++] = raw(*free4[k]);
                 swaps4.push_back({f4[next4], free4[k]});
             }
-            for (std::size_t k = 0; k < free1.size() && k < GatherParticles::kFloat && next1 < f1.size(); ++k, ++next1) {
+            for (std::size_t k = 0; k < free1.size && k < GatherParticles::kFloat && next1 < f1.size; ++k, ++next1) {
                 g.f1_src[g.f1] = raw(*f1[next1]);
                 g.f1_dst[g.f1++] = raw(*free1[k]);
                 swaps1.push_back({f1[next1], free1[k]});
@@ -201,8 +216,8 @@ struct SolverData {
                 g.u_dst = raw(uint_tmp);
             }
             parallel_for(n, g);
-            for (auto& s : swaps4) s.first->swap(*s.second);
-            for (auto& s : swaps1) s.first->swap(*s.second);
+            for (std::size_t k = 0; k < swaps4.size; ++k) swaps4[k].first->swap(*swaps4[k].second);
+            for (std::size_t k = 0; k < swaps1.size; ++k) swaps1[k].first->swap(*swaps1[k].second);
             if (!id_done) id.swap(uint_tmp);
             id_done = true;
         }
