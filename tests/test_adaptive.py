@@ -101,6 +101,31 @@ def periodic_tree(scene, pos):
     return cKDTree(pos, boxsize=[L[0], 100 * L[1], L[2]]), pos
 
 
+@pytest.mark.gpu
+@pytest.mark.parametrize("phase", ["split", "merge"])
+def test_gpu_teams_decide_as_one_thread(phase):
+    """A GPU team (a warp sharing each too-close search: grid.h, BlockSearch) takes the split and merge decisions
+    that the CPU's team of one takes walking the cells: from one state the same particles split, merge and
+    survive, at the same levels, and land at the same places (up to the rounding of contracted multiply-adds)."""
+    scene = adaptive_scene()
+    if phase == "split":
+        start = by_id(with_cloud(scene, "cpu", lambda p: np.full(len(p), 2e-3)).state())
+    else:
+        start = refined_state(scene, "cpu")
+    runs = []
+    for backend in ("cpu", "cuda"):
+        sim = Simulation.from_arrays(scene, start, backend=backend)
+        sim.adapt()
+        runs.append((by_id(sim.state()), sim.stats()))
+    (cpu, cpu_stats), (gpu, gpu_stats) = runs
+    for key in ("splits_last_step", "merges_last_step"):
+        assert cpu_stats[key] == gpu_stats[key], key
+    assert cpu_stats["splits_last_step" if phase == "split" else "merges_last_step"] > 50
+    assert np.array_equal(cpu["id"], gpu["id"])
+    assert np.array_equal(cpu["level"], gpu["level"])
+    np.testing.assert_allclose(cpu["position"], gpu["position"], rtol=0, atol=1e-3)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_merged_particles_keep_the_distance_threshold(backend):
     """A merge happens only where no other particle is within min_distance h_{l-1} of the midpoint, and
