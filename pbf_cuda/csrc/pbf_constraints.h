@@ -64,16 +64,17 @@ struct Sym3 {
 };
 
 // ---- the neighbour sums the four constraint kernels share ---------------------------------------
-// The density constraint's neighbourhood of fluid particle i at xi: on_fluid(j, r, r2, m_j, h_j) for every fluid
-// neighbour (i itself included, r2 = 0), then on_wall(r, r2, m_b) for every boundary particle within h0 when i is
-// near a wall (boundary particles have the level-0 radius h0), from the walls' table (grid.h).
-// Its walls alone: on_wall(r, r2, m_b) where i is near a wall (the sums that add the walls after their fluid pairs).
+// The density constraint's walls around fluid particle i at xi: on_wall(r, r2, m_b) for every boundary particle
+// within h0 when i is near a wall (boundary particles have the level-0 radius h0), from the walls' table (grid.h).
+// Called alone by the sums that add the walls after their fluid pairs.
 template <class Wall>
 PBF_HD inline void for_each_constraint_wall(const GridGeometry& grid, const WallNeighbourhoods& walls, float h0,
                                             Vec3 xi, Wall&& on_wall) {
     if (walls.offset && near_wall(grid, xi, h0)) for_each_wall_neighbor<kListBatch>(grid, walls, xi, h0, on_wall);
 }
 
+// The density constraint's neighbourhood of fluid particle i at xi: on_fluid(j, r, r2, m_j, h_j) for every fluid
+// neighbour (i itself included, r2 = 0), then its walls (for_each_constraint_wall).
 template <class Policy, class Fluid, class Wall>
 PBF_HD inline void for_each_constraint_neighbor(const GridGeometry& grid, const CellRanges& fluid,
                                                 const WallNeighbourhoods& walls, const LevelRadii& radii, float h0,

@@ -4,7 +4,6 @@
 // them in the paper's order is Solver::do_step (solver_impl.inl).
 #pragma once
 #include <utility>
-#include <vector>
 
 #include "launch.h"
 
