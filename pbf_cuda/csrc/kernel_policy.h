@@ -132,35 +132,56 @@ PBF_HD inline bool supported_pair(const GridGeometry& g, const LevelRadii& radii
     return within_radius(r2, Policy::support(hi, hj), 0.0f);
 }
 
-template <class Policy, class F>
-PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
-                                           float h0, uint32_t i, Vec3 q, F&& f) {
+// No per-neighbour data besides the position (for_each_fluid_neighbor below).
+struct NoNeighborData {};
+struct GatherNothing {
+    PBF_HD NoNeighborData operator()(uint32_t) const { return {}; }
+};
+
+// for_each_fluid_neighbor with data of each candidate j read beside its position: f(j, r, r2, m_j, h_j, gather(j)).
+// gather(j) is called for every candidate of the batch, within support or not, right after the batch's positions,
+// so a pass that needs j's lambda, impulse or velocity has those loads in flight with the positions instead of one
+// dependent load per pair (the same sums in the same order: only the loads move).
+template <class Policy, class Gather, class F>
+PBF_HD inline void for_each_fluid_neighbor_gathered(const GridGeometry& g, const CellRanges& fluid,
+                                                    const LevelRadii& radii, float h0, uint32_t i, Vec3 q,
+                                                    Gather&& gather, F&& f) {
+    using Data = decltype(gather(0u));
     if (fluid.listed(i)) {
         const float hi = Policy::radius(radii, h0, fluid.pos[i].w);
-        auto visit = [&](uint32_t j, const Float4& pj) {
+        auto visit = [&](uint32_t j, const Float4& pj, const Data& dj) {
             Vec3 r;
             float r2, hj;
-            if (supported_pair<Policy>(g, radii, h0, q, hi, pj, r, r2, hj)) f(j, r, r2, pj.w, hj);
+            if (supported_pair<Policy>(g, radii, h0, q, hi, pj, r, r2, hj)) f(j, r, r2, pj.w, hj, dj);
         };
         const uint32_t e = fluid.nbr_count[i];
         uint32_t k = 0;
         for (; k + kListBatch <= e; k += kListBatch) {
             uint32_t j[kListBatch];
             Float4 pj[kListBatch];
+            Data dj[kListBatch];
             for (uint32_t b = 0; b < kListBatch; ++b) j[b] = fluid.candidate(i, k + b);
             for (uint32_t b = 0; b < kListBatch; ++b) pj[b] = fluid.pos[j[b]];
-            for (uint32_t b = 0; b < kListBatch; ++b) visit(j[b], pj[b]);
+            for (uint32_t b = 0; b < kListBatch; ++b) dj[b] = gather(j[b]);
+            for (uint32_t b = 0; b < kListBatch; ++b) visit(j[b], pj[b], dj[b]);
         }
         for (; k < e; ++k) {
             uint32_t j = fluid.candidate(i, k);
-            visit(j, fluid.pos[j]);
+            visit(j, fluid.pos[j], gather(j));
         }
         return;
     }
     Policy::for_each_neighbor(g, fluid, i, q, h0, [&](uint32_t j, Vec3 r, float r2) {
         float mj = fluid.pos[j].w;
-        f(j, r, r2, mj, Policy::radius(radii, h0, mj));
+        f(j, r, r2, mj, Policy::radius(radii, h0, mj), gather(j));
     });
+}
+
+template <class Policy, class F>
+PBF_HD inline void for_each_fluid_neighbor(const GridGeometry& g, const CellRanges& fluid, const LevelRadii& radii,
+                                           float h0, uint32_t i, Vec3 q, F&& f) {
+    for_each_fluid_neighbor_gathered<Policy>(g, fluid, radii, h0, i, q, GatherNothing{},
+        [&](uint32_t j, Vec3 r, float r2, float mj, float hj, NoNeighborData) { f(j, r, r2, mj, hj); });
 }
 
 }  // namespace pbf

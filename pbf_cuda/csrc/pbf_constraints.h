@@ -83,6 +83,17 @@ PBF_HD inline void for_each_constraint_neighbor(const GridGeometry& grid, const 
     for_each_constraint_wall(grid, walls, h0, xi, on_wall);
 }
 
+// The same with data of each fluid candidate read beside its position: on_fluid(j, r, r2, m_j, h_j, gather(j))
+// (for_each_fluid_neighbor_gathered).
+template <class Policy, class Gather, class Fluid, class Wall>
+PBF_HD inline void for_each_constraint_neighbor_gathered(const GridGeometry& grid, const CellRanges& fluid,
+                                                         const WallNeighbourhoods& walls, const LevelRadii& radii,
+                                                         float h0, uint32_t i, Vec3 xi, Gather&& gather,
+                                                         Fluid&& on_fluid, Wall&& on_wall) {
+    for_each_fluid_neighbor_gathered<Policy>(grid, fluid, radii, h0, i, xi, gather, on_fluid);
+    for_each_constraint_wall(grid, walls, h0, xi, on_wall);
+}
+
 // Row i of the constraint Jacobian J = grad C, summed over the neighbourhood: grad_i C_i and the Jacobi diagonal
 // sum_k |grad_k C_i|^2 / m_k (the denominator of eq. 4 without epsilon). Fluid neighbours contribute
 // grad_j C_i = -(m_j / rho0) grad W_ij to the sum and its negative to grad_i C_i; walls only to grad_i C_i.
@@ -98,7 +109,7 @@ struct JacobianRow {
     PBF_HD float diagonal(float mi) const { return dot(grad_i, grad_i) / mi + sum_grad2; }
 };
 
-// (M^-1 J^T a)_i rho0 = sum_j coef(j, r2, m_j, h_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
+// (M^-1 J^T a)_i rho0 = sum_j coef(j, r2, m_j, h_j, a_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
 // fluid pair's weight a_i m_j / m_i + a_j (+ the tensile term): the position correction (Macklin eq. 12-14,
 // a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum. Its wall terms, added to sum after
 // the fluid pairs as for_each_constraint_neighbor visits them:
@@ -110,14 +121,16 @@ PBF_HD inline void add_wall_terms_transposed(const GridGeometry& grid, const Wal
     });
 }
 
+// a_j is read with j's position (for_each_fluid_neighbor_gathered) and handed to coef(j, r2, m_j, h_j, a_j).
 template <class Policy, class Coef>
 PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid,
                                   const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i,
-                                  Vec3 xi, float hi, float ai, float mi, Coef&& coef) {
+                                  Vec3 xi, float hi, float ai, float mi, const float* a, Coef&& coef) {
     Vec3 sum{0, 0, 0};
-    for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+    for_each_fluid_neighbor_gathered<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j) { return a[j]; },
+                                             [&](uint32_t j, Vec3 r, float r2, float mj, float hj, float aj) {
         if (j == i) return;
-        float c = coef(j, r2, mj, hj);
+        float c = coef(j, r2, mj, hj, aj);
         sum += c * Policy::grad_W(r, r2, hi, hj);
     });
     add_wall_terms_transposed<Policy>(grid, walls, h0, xi, hi, ai, mi, sum);
@@ -255,8 +268,8 @@ struct ApplyJT {
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = p[i];
         if constexpr (!Corrected) {
-            Vec3 dv = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi,
-                                             [&](uint32_t j, float, float mj, float) { return li * mj / mi + p[j]; });
+            Vec3 dv = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi, p,
+                                             [&](uint32_t, float, float mj, float, float pj) { return li * mj / mi + pj; });
             g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
         } else {
             // (M^-1 J^T p)_i rho0 = L_i (sum_j p_i m_j / m_i grad W_ij + walls) + sum_j p_j L_j grad W_ij
@@ -300,12 +313,13 @@ struct ApplyJ {
         JacobianRow row;
         Sym3 li{1, 0, 0, 1, 0, 1};
         if constexpr (Corrected) li = Sym3::load(correction, i);
-        for_each_constraint_neighbor<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
-            [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+        for_each_constraint_neighbor_gathered<Policy>(grid, fluid, walls, radii, cp.h0, i, xi,
+            [&](uint32_t j) { return u[j]; },
+            [&](uint32_t j, Vec3 r, float r2, float mj, float hj, const Float4& uj) {
                 if (j == i) return;
                 Vec3 gw = Policy::grad_W(r, r2, hi, hj);
                 if constexpr (Corrected) gw = li * gw;
-                div += mj * dot(ui - xyz(u[j]), gw);
+                div += mj * dot(ui - xyz(uj), gw);
                 if (diag) row.add_fluid(gw, mj, cp.inv_rest_density);
             },
             [&](Vec3 r, float r2, float mb) {
@@ -353,8 +367,8 @@ struct PositionCorrection {
         float mi = pi.w;
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = lambda[i];
-        Vec3 dp = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi,
-                                         [&](uint32_t j, float r2, float mj, float hj) {
+        Vec3 dp = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi, lambda,
+                                         [&](uint32_t, float r2, float mj, float hj, float lambda_j) {
             float s = 0.0f;
             // s_corr = -k (W(r) / W(dq h))^n: between level-0 particles as in a uniform run, on a pair with a
             // fine particle at the pair's radii (policy) times scorr_fine; a pair it weighs 0 skips the kernels
@@ -366,7 +380,7 @@ struct PositionCorrection {
                 s = -cp.scorr_k_lambda * repeated_product(ratio, cp.scorr_n);
                 if (fine_pair) s = Policy::tensile_scale(s, hi, hj, cp.h0) * cp.scorr_fine;
             }
-            return li * mj / mi + lambda[j] + s;
+            return li * mj / mi + lambda_j + s;
         });
         Vec3 x = xi + cp.inv_rest_density * dp;
         // Collision with the walls: keep the particle inside the box on wall axes.
