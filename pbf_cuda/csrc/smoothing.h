@@ -111,18 +111,26 @@ struct SmoothScalars {
         const bool confine = confinement.vel != nullptr;
         const float wi = confine ? confinement.omega[i].w : 0.0f;
         Vec3 eta{0, 0, 0};
-        for_each_fluid_neighbor<Policy>(grid, fluid, radii, pair.h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
+        struct Fields {
+            float v[2];
+            float s;
+        };
+        auto gather = [&](uint32_t j) {
+            return Fields{{f.in[0] ? f.in[0][j] : 0.0f, f.in[1] ? f.in[1][j] : 0.0f}, weight_sum ? weight_sum[j] : 0.0f};
+        };
+        for_each_fluid_neighbor_gathered<Policy>(grid, fluid, radii, pair.h0, i, xi, gather,
+                                                 [&](uint32_t j, Vec3 r, float r2, float mj, float hj, const Fields& nj) {
             if (j == i) return;
             Vec3 gw = Policy::grad_W(r, r2, hi, hj);
             if (confine) confinement.add(eta, wi, j, mj, gw);
             float c = pair.coefficient<Policy>(r, r2, hi, hj, mj, gw);
             if (weight_sum) {
-                float s = fmaxf(s_i, weight_sum[j]);
+                float s = fmaxf(s_i, nj.s);
                 if (s > kSmoothingWeightCap) c *= kSmoothingWeightCap / s;
             }
-            if (f.in[0]) dT[0] -= c * (vi[0] - f.in[0][j] - env.change(xi.y, r.y));
-            for (int k = 1; k < 3; ++k)
-                if (f.in[k]) dT[k] -= c * (vi[k] - f.in[k][j]);
+            if (f.in[0]) dT[0] -= c * (vi[0] - nj.v[0] - env.change(xi.y, r.y));
+            if (f.in[1]) dT[1] -= c * (vi[1] - nj.v[1]);
+            if (f.in[2]) dT[2] -= c * (vi[2] - f.in[2][j]);
         });
         for (int k = 0; k < 3; ++k)
             if (f.in[k]) f.out[k][i] = vi[k] + dT[k];
