@@ -441,18 +441,12 @@ struct ViscosityVorticity {
         const bool narrow = narrowing.count && fluid.listed(i);   // a row cut at the width stays as it is
         RowNarrowing::Cursor kept{};
         if (narrow) kept = narrowing.begin(i);
-        struct Moving {
-            Float4 v;
-            float rho;
-        };
-        for_each_fluid_neighbor_gathered<Policy>(grid, fluid, radii, h0, i, xi,
-                                                 [&](uint32_t j) { return Moving{vel[j], density[j]}; },
-                                                 [&](uint32_t j, Vec3 r, float r2, float mj, float hj, const Moving& nj) {
+        for_each_fluid_neighbor<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j, Vec3 r, float r2, float mj, float hj) {
             if (narrow) narrowing.keep(kept, j);
             if (j == i) return;
             if (pair_sum.out) summed += pair_sum(r, r2, hi, hj, mj);
-            float vol = mj / nj.rho;
-            Vec3 dv = xyz(nj.v) - vi;
+            float vol = mj / density[j];
+            Vec3 dv = xyz(vel[j]) - vi;
             if (xsph > 0.0f) visc += (vol * Policy::W(r2, hi, hj)) * dv;
             if (want_vorticity || nu_dt > 0.0f || warm) {
                 Vec3 gw = Policy::grad_W(r, r2, hi, hj);
