@@ -211,6 +211,15 @@ def cover_series(kind, seconds=3600.0, every=5, seed=0):
     return np.array(out)
 
 
+def test_cpu_cycle_adapts_at_the_gpu_scenes_interval_in_model_time():
+    # The CPU cycle's steps are longer (dt 8 s against 2 s), so it splits and merges every step to keep the
+    # shipped scene's interval between adaptations in model seconds (docs/cycling.md).
+    gpu = load_scene("cycling_adaptive")
+    cpu = gpu.replace(**CPU_OVERRIDES)
+    assert gpu.adaptive.enabled and cpu.adaptive.enabled
+    assert cpu.adaptive.every * cpu.time.dt == pytest.approx(gpu.adaptive.every * gpu.time.dt)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["particles", "adaptive", "grid"])
 def test_clouds_disappear_and_reappear_at_cpu_scale(kind):
