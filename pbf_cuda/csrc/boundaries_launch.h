@@ -49,9 +49,8 @@ inline void gather_wall_neighbourhoods(const GridGeometry& g, float h0, const st
         uint32_t c[3];
         cell_coords(g, cell, c);
         auto step = [&](int a, int d) {
-            int v = int(c[a]) + d;
-            if (g.periodic[a]) return v < 0 ? v + g.dims[a] : (v >= g.dims[a] ? v - g.dims[a] : v);
-            return (v < 0 || v >= g.dims[a]) ? -1 : v;
+            int v;
+            return neighbor_coord(g, a, int(c[a]), d, v) ? v : -1;
         };
         for (int dz = -1; dz <= 1; ++dz) {
             int z = step(2, dz);

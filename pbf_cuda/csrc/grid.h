@@ -271,17 +271,14 @@ PBF_HD inline void for_each_neighbor_nested(const GridGeometry& g, const CellRan
         return e * e;
     };
     for (int dz = -1; dz <= 1; ++dz) {
-        int cz = int(c[2]) + dz;
-        if (g.periodic[2]) { cz = cz < 0 ? cz + g.dims[2] : (cz >= g.dims[2] ? cz - g.dims[2] : cz); }
-        else if (cz < 0 || cz >= g.dims[2]) continue;
+        int cz;
+        if (!neighbor_coord(g, 2, int(c[2]), dz, cz)) continue;
         for (int dy = -1; dy <= 1; ++dy) {
-            int cy = int(c[1]) + dy;
-            if (g.periodic[1]) { cy = cy < 0 ? cy + g.dims[1] : (cy >= g.dims[1] ? cy - g.dims[1] : cy); }
-            else if (cy < 0 || cy >= g.dims[1]) continue;
+            int cy;
+            if (!neighbor_coord(g, 1, int(c[1]), dy, cy)) continue;
             for (int dx = -1; dx <= 1; ++dx) {
-                int cx = int(c[0]) + dx;
-                if (g.periodic[0]) { cx = cx < 0 ? cx + g.dims[0] : (cx >= g.dims[0] ? cx - g.dims[0] : cx); }
-                else if (cx < 0 || cx >= g.dims[0]) continue;
+                int cx;
+                if (!neighbor_coord(g, 0, int(c[0]), dx, cx)) continue;
                 uint32_t cell = cell_index(g, cx, cy, cz);
                 uint32_t b = set.start[cell], en = set.end[cell];
                 if (b == en) continue;

@@ -109,7 +109,7 @@ struct JacobianRow {
     PBF_HD float diagonal(float mi) const { return dot(grad_i, grad_i) / mi + sum_grad2; }
 };
 
-// (M^-1 J^T a)_i rho0 = sum_j coef(j, r2, m_j, h_j, a_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
+// (M^-1 J^T a)_i rho0 = sum_j coef(r2, m_j, h_j, a_j) grad W_ij + sum_b (a_i m_b / m_i) grad W_ib, with coef the
 // fluid pair's weight a_i m_j / m_i + a_j (+ the tensile term): the position correction (Macklin eq. 12-14,
 // a = lambda) and the velocity projection's M^-1 J^T (a = mu) are this one sum. Its wall terms, added to sum after
 // the fluid pairs as for_each_constraint_neighbor visits them:
@@ -121,7 +121,7 @@ PBF_HD inline void add_wall_terms_transposed(const GridGeometry& grid, const Wal
     });
 }
 
-// a_j is read with j's position (for_each_fluid_neighbor_gathered) and handed to coef(j, r2, m_j, h_j, a_j).
+// a_j is read with j's position (for_each_fluid_neighbor_gathered) and handed to coef(r2, m_j, h_j, a_j).
 template <class Policy, class Coef>
 PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fluid,
                                   const WallNeighbourhoods& walls, const LevelRadii& radii, float h0, uint32_t i,
@@ -130,7 +130,7 @@ PBF_HD inline Vec3 sum_transposed(const GridGeometry& grid, const CellRanges& fl
     for_each_fluid_neighbor_gathered<Policy>(grid, fluid, radii, h0, i, xi, [&](uint32_t j) { return a[j]; },
                                              [&](uint32_t j, Vec3 r, float r2, float mj, float hj, float aj) {
         if (j == i) return;
-        float c = coef(j, r2, mj, hj, aj);
+        float c = coef(r2, mj, hj, aj);
         sum += c * Policy::grad_W(r, r2, hi, hj);
     });
     add_wall_terms_transposed<Policy>(grid, walls, h0, xi, hi, ai, mi, sum);
@@ -269,7 +269,7 @@ struct ApplyJT {
         float li = p[i];
         if constexpr (!Corrected) {
             Vec3 dv = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi, p,
-                                             [&](uint32_t, float, float mj, float, float pj) { return li * mj / mi + pj; });
+                                             [&](float, float mj, float, float pj) { return li * mj / mi + pj; });
             g[i] = make_float4(cp.inv_rest_density * dv, 0.0f);
         } else {
             // (M^-1 J^T p)_i rho0 = L_i (sum_j p_i m_j / m_i grad W_ij + walls) + sum_j p_j L_j grad W_ij
@@ -368,7 +368,7 @@ struct PositionCorrection {
         float hi = Policy::radius(radii, cp.h0, mi);
         float li = lambda[i];
         Vec3 dp = sum_transposed<Policy>(grid, fluid, walls, radii, cp.h0, i, xi, hi, li, mi, lambda,
-                                         [&](uint32_t, float r2, float mj, float hj, float lambda_j) {
+                                         [&](float r2, float mj, float hj, float lambda_j) {
             float s = 0.0f;
             // s_corr = -k (W(r) / W(dq h))^n: between level-0 particles as in a uniform run, on a pair with a
             // fine particle at the pair's radii (policy) times scorr_fine; a pair it weighs 0 skips the kernels

@@ -111,6 +111,8 @@ struct SmoothScalars {
         const bool confine = confinement.vel != nullptr;
         const float wi = confine ? confinement.omega[i].w : 0.0f;
         Vec3 eta{0, 0, 0};
+        // Read with j's position: the limiter's S_j and fields 0 and 1 (temperature and vapour, the fields the
+        // shipped scenes smooth); field 2 (cloud water) is read per pair.
         struct Fields {
             float v[2];
             float s;
