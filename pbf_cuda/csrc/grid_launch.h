@@ -214,6 +214,27 @@ bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
     return true;
 }
 
+// The list passes' thread order (launch.h: order_tiles_by_length) from the rows' lengths as built: a tile is
+// permuted where that shortens its four warps by at least kRowOrderMinSaving candidates (measured on an H100 against
+// 8 and 24: as fast on the adaptive scenes, and 8 slowed the 1M-particle `growing`; README, "Speed of the step",
+// change 15). The rows narrowed after the density iterations keep this order (ordered again by their narrowed
+// lengths, the passes after were no faster). CLOUDPBF_ROW_ORDER=0 in the environment keeps the index order (for
+// comparisons); the CPU backend's threads walk chunks of particles and keep it always.
+constexpr uint32_t kRowOrderMinSaving = 16;
+inline void order_list_passes(SolverData& d) {
+    d.pass_order_ready = false;
+#ifdef PBF_BACKEND_CUDA
+    static const bool enabled = [] {
+        const char* env = std::getenv("CLOUDPBF_ROW_ORDER");
+        return !(env && std::string(env) == "0");
+    }();
+    if (enabled && d.n > 0) {
+        order_tiles_by_length(d.n, raw(d.nbr_count), kRowOrderMinSaving, raw(d.pass_order));
+        d.pass_order_ready = true;
+    }
+#endif
+}
+
 // This step's neighbour lists (neighbor_list.h) from the sorted particles: one pass finds, counts and stores each
 // particle's candidates in rows of the current width, and one reduction sums their total and the longest row into
 // the step's sums, which the host reads after the step (take_list_size): the step does not wait for it. A row longer
@@ -240,6 +261,7 @@ bool build_neighbor_lists(SolverData& d, const PairSum& pair_sum) {
         if (d.nbr_width != width && !fill_neighbor_rows<Policy>(d, pair_sum)) return false;
     }
     reduce_into(d.n, count, ListSize{0ull, 0u}, ListSizeAdd{}, &raw(d.step_sums)->list_size);
+    order_list_passes(d);
     d.lists_ready = true;
     d.list_size_pending = true;
     return true;

@@ -41,6 +41,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <stdexcept>
 #include <utility>
 #include <string>
@@ -198,6 +199,83 @@ void parallel_for(std::size_t n, const F& f) {
     const unsigned block = 128;
     launch("parallel_for", for_each_kernel<F>, unsigned((n + block - 1) / block), block, uint32_t(n), f);
 }
+
+template <class F>
+__global__ void PBF_LAUNCH_BOUNDS for_each_in_order_kernel(uint32_t n, const uint32_t* order, F f) {
+    wait_for_prior_grids();
+    uint32_t t = blockIdx.x * blockDim.x + threadIdx.x;
+    if (t < n) f(order[t]);
+}
+
+// f(order[t]) for t in [0, n), order a permutation of [0, n) (nullptr: parallel_for): which thread takes which item,
+// nothing else; every item is still computed by one thread from the same inputs, so the results are those of
+// parallel_for to the bit.
+template <class F>
+void parallel_for_in_order(std::size_t n, const uint32_t* order, const F& f) {
+    if (!order) return parallel_for(n, f);
+    if (n == 0) return;
+    const unsigned block = 128;
+    launch("parallel_for_in_order", for_each_in_order_kernel<F>, unsigned((n + block - 1) / block), block, uint32_t(n),
+           order, f);
+}
+
+// The order of the neighbour-list passes' threads (parallel_for_in_order): a warp runs as long as its longest row
+// (the rounds of its longest particle's candidate loop), and in the sort's order a warp's 32 particles mix rows of
+// 29 to 89 candidates where fine and coarse particles meet (cycling_adaptive at step 601: the warps' longest rows sum
+// to 1.16 times their mean rows; docs/benchmarks.md, "Rows of equal length"). So each tile of kRowTile consecutive
+// particles (one block of parallel_for_in_order, whose four warps share their lines in the SM's L1) is ordered by
+// its particles' row length, longest first, in buckets of four candidates (kListBatch's rounds): order[base + rank]
+// = i, where that shortens the tile's four warps by at least min_saving candidates in all. Elsewhere order[i] = i,
+// and the warps read their rows' slots in whole lines: a permuted warp reads each slot of its rows from four lines
+// instead of one, which cost the 1M-particle `growing` more than its rows' lengths saved with every tile permuted.
+// Particles of a bucket take their ranks in the order their threads reach the shared counter: that decides which
+// thread computes which particle, and every particle's result is the same to the bit.
+constexpr uint32_t kRowTile = 128;
+constexpr uint32_t kRowBuckets = 64;   // lengths 0-3, 4-7, .., 248 and more; the last bucket: items past n
+__global__ void __launch_bounds__(kRowTile) order_tiles_kernel(uint32_t n, const uint32_t* length, uint32_t min_saving,
+                                                              uint32_t* order) {
+    __shared__ uint32_t first[kRowBuckets];   // items per bucket, then the bucket's first rank
+    __shared__ uint32_t warp_longest[kRowTile / 32], sorted_longest[kRowTile / 32];
+    wait_for_prior_grids();
+    const uint32_t base = blockIdx.x * kRowTile, t = threadIdx.x, i = base + t;
+    const uint32_t len = i < n ? length[i] : 0u;
+    const uint32_t bucket = i < n ? kRowBuckets - 2u - min(len / 4u, kRowBuckets - 2u) : kRowBuckets - 1u;
+    if (t < kRowBuckets) first[t] = 0u;
+    if (t < kRowTile / 32) sorted_longest[t] = 0u;
+    uint32_t longest = len;
+    for (int o = 16; o > 0; o >>= 1) longest = max(longest, __shfl_xor_sync(0xffffffffu, longest, o));
+    if (t % 32u == 0) warp_longest[t / 32u] = longest;
+    __syncthreads();
+    const uint32_t within = atomicAdd(&first[bucket], 1u);
+    __syncthreads();
+    if (t < 32) {   // exclusive scan of the buckets' counts: lane l holds buckets 2 l and 2 l + 1
+        static_assert(kRowBuckets == 64, "one warp scans two buckets per lane");
+        const uint32_t a = first[2 * t], b = first[2 * t + 1];
+        uint32_t incl = a + b;
+        for (uint32_t o = 1; o < 32u; o <<= 1) {
+            const uint32_t v = __shfl_up_sync(0xffffffffu, incl, o);
+            if (t >= o) incl += v;
+        }
+        first[2 * t] = incl - a - b;
+        first[2 * t + 1] = incl - b;
+    }
+    __syncthreads();
+    const uint32_t rank = first[bucket] + within;
+    if (i < n) atomicMax(&sorted_longest[rank / 32u], len);
+    __syncthreads();
+    if (i >= n) return;
+    uint32_t before = 0, after = 0;
+    for (uint32_t w = 0; w < kRowTile / 32; ++w) {
+        before += warp_longest[w];
+        after += sorted_longest[w];
+    }
+    order[before >= after + min_saving ? base + rank : i] = i;
+}
+inline void order_tiles_by_length(std::size_t n, const uint32_t* length, uint32_t min_saving, uint32_t* order) {
+    if (n == 0) return;
+    launch("order_tiles", order_tiles_kernel, unsigned((n + kRowTile - 1) / kRowTile), kRowTile, uint32_t(n), length,
+           min_saving, order);
+}
 #else
 // Chunks of 512 items handed out as threads come free (OpenMP's dynamic schedule). Thrust's for_each splits the
 // range into one equal part per thread; a particle's cost follows its neighbourhood (a full one in the bulk, half
@@ -210,6 +288,10 @@ void parallel_for(std::size_t n, const F& f) {
 #pragma omp parallel for schedule(dynamic, kCpuChunk)
     for (long long i = 0; i < m; ++i) f(uint32_t(i));
 }
+// A thread walks its chunk's items one after the other: the order of items within a team does not matter here.
+template <class F>
+void parallel_for_in_order(std::size_t n, const uint32_t*, const F& f) { parallel_for(n, f); }
+inline void order_tiles_by_length(std::size_t, const uint32_t*, uint32_t, uint32_t*) {}
 #endif
 
 // op-reduction of f(i) over i in [0, n), starting from init (the host waits for the value).
@@ -227,10 +309,16 @@ T reduce_over(std::size_t n, const F& f, T init, Op op) {
 #ifdef PBF_BACKEND_CUDA
 // One-launch reduction in a fixed order, so the same value on every run (no floating-point atomics): each of at
 // most kReduceBlocks blocks reduces its items (item i in block (i / 256) mod blocks, thread i mod 256, in index
-// order) and its threads in a fixed tree, writes its partial, and the block that finishes last (a counter in device
-// memory, reset by that block) reduces the partials in the same tree. The number of blocks depends on n only.
+// order), then its threads in a fixed tree (each warp's 32 by shuffles, then the block's 8 warps), writes its
+// partial, and the block that finishes last (a counter in device memory, reset by that block) reduces the partials
+// in the same tree. The number of blocks depends on n only.
 constexpr unsigned kReduceThreads = 256;
 constexpr unsigned kReduceBlocks = 1024;
+// Items per thread the number of blocks aims at (up to kReduceBlocks): one item per thread (blocks = n / 256) made
+// every block's tree and every block's turn at the counter cost more than its items; sixteen left too few threads
+// to keep the loads in flight. Measured on an H100 (README, "Speed of the step", change 15): 4 against 1, the same
+// states, 0.02 ms less per step at 483k particles and 0.01 ms at 1M; 16 was slower than 1.
+constexpr unsigned kReduceItemsPerThread = 4;
 __device__ unsigned int reduce_blocks_done = 0;
 
 // A T read past the L1 cache (the partials other blocks wrote; their writes are fenced before the counter).
@@ -244,19 +332,37 @@ __device__ inline T load_from_l2(const T* p) {
     return v;
 }
 
-// Reduces the kReduceThreads values of a block held in shared memory s (a fixed tree); the result in s[0].
+// op over the 32 lanes of a warp in a fixed tree (lane l takes lane l + o, o = 16, 8, .., 1); the result in lane 0.
 template <class T, class Op>
-__device__ inline void reduce_block(T* s, Op op) {
-    for (unsigned w = kReduceThreads / 2; w > 0; w >>= 1) {
-        if (threadIdx.x < w) s[threadIdx.x] = op(s[threadIdx.x], s[threadIdx.x + w]);
-        __syncthreads();
+__device__ inline T reduce_warp(T v, Op op) {
+    static_assert(sizeof(T) % 4 == 0, "reduce_into: the reduced type's size must be a multiple of 4 bytes");
+    for (unsigned o = 16; o > 0; o >>= 1) {
+        unsigned word[sizeof(T) / 4];
+        memcpy(word, &v, sizeof(T));
+        for (unsigned k = 0; k < sizeof(T) / 4; ++k) word[k] = __shfl_down_sync(0xffffffffu, word[k], o);
+        T other;
+        memcpy(&other, word, sizeof(T));
+        v = op(v, other);
     }
+    return v;
+}
+
+// op over the kReduceThreads values v of a block (every thread calls it); the result in thread 0. s: shared memory
+// for one value per warp.
+template <class T, class Op>
+__device__ inline T reduce_block(T v, T init, Op op, T* s) {
+    const unsigned lane = threadIdx.x % 32u, warp = threadIdx.x / 32u;
+    v = reduce_warp(v, op);
+    if (lane == 0) s[warp] = v;
+    __syncthreads();
+    if (warp == 0) v = reduce_warp(lane < kReduceThreads / 32u ? s[lane] : init, op);
+    return v;
 }
 
 template <class F, class T, class Op, class Then>
 __global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f, T init, Op op, T* partial, T* out,
                                                                 Then then) {
-    __shared__ alignas(T) unsigned char storage[sizeof(T) * kReduceThreads];
+    __shared__ alignas(T) unsigned char storage[sizeof(T) * (kReduceThreads / 32u)];
     __shared__ bool last;
     T* s = reinterpret_cast<T*>(storage);
     wait_for_prior_grids();
@@ -265,11 +371,9 @@ __global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f,
 #pragma unroll 4
     for (std::size_t i = std::size_t(blockIdx.x) * kReduceThreads + t; i < n; i += std::size_t(gridDim.x) * kReduceThreads)
         acc = op(acc, f(uint32_t(i)));
-    s[t] = acc;
-    __syncthreads();
-    reduce_block(s, op);
+    acc = reduce_block(acc, init, op, s);
     if (t == 0) {
-        partial[blockIdx.x] = s[0];
+        partial[blockIdx.x] = acc;
         __threadfence();
         last = atomicAdd(&reduce_blocks_done, 1u) == gridDim.x - 1;
     }
@@ -292,11 +396,9 @@ __global__ void __launch_bounds__(kReduceThreads) reduce_kernel(uint32_t n, F f,
     } else {
         for (unsigned b = t; b < gridDim.x; b += kReduceThreads) acc = op(acc, load_from_l2(partial + b));
     }
-    s[t] = acc;
-    __syncthreads();
-    reduce_block(s, op);
+    acc = reduce_block(acc, init, op, s);
     if (t == 0) {
-        *out = s[0];
+        *out = acc;
         reduce_blocks_done = 0;
         then();
     }
@@ -313,7 +415,8 @@ struct NoFinish {
 template <class T, class F, class Op, class Then = NoFinish>
 void reduce_into(std::size_t n, const F& f, T init, Op op, T* out, const Then& then = Then{}) {
 #ifdef PBF_BACKEND_CUDA
-    const std::size_t wanted = (n + kReduceThreads - 1) / kReduceThreads;
+    const std::size_t per_block = std::size_t(kReduceThreads) * kReduceItemsPerThread;
+    const std::size_t wanted = (n + per_block - 1) / per_block;
     const unsigned blocks = unsigned(wanted < 1 ? 1 : (wanted > kReduceBlocks ? kReduceBlocks : wanted));
     const std::size_t bytes = sizeof(T) * blocks;
     char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));

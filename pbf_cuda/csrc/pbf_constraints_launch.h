@@ -238,8 +238,10 @@ void solve_density(SolverData& d, const WallNeighbourhoods& walls, bool first_su
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
         if (!(it == 0 && first_summed))
-            parallel_for(d.n, DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
-        parallel_for(d.n, PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
+            parallel_for_in_order(d.n, d.list_pass_order(),
+                                  DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
+        parallel_for_in_order(d.n, d.list_pass_order(),
+                              PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }
     if (closed_column) {
@@ -321,10 +323,11 @@ XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const Wal
     bool vort = p.vorticity > 0.0f;
     const RowNarrowing narrowing = list_narrowing(d);
     const WarmStartImpulse<Policy> warm = warm_start_impulse<Policy>(d, walls);
-    parallel_for(d.n, ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
-                                                          d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
-                                                          raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum,
-                                                          narrowing, warm});
+    parallel_for_in_order(d.n, d.list_pass_order(),
+                          ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
+                                                              d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
+                                                              raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum,
+                                                              narrowing, warm});
     d.vel.swap(d.vel_tmp);
     if (vort && !d.smoothing) parallel_for(d.n, VorticityConfinement<Policy>{d.grid, fl, d.radii, p.h0, confinement(d)});
     return XsphRiders{pair_sum.out != nullptr, narrowing.count != nullptr, warm.out != nullptr};
@@ -361,21 +364,22 @@ void solve_divergence(SolverData& d, const WallNeighbourhoods& bnd, bool warm_re
         L = raw(d.grad_correction);
         parallel_for(n, GradientCorrection<Policy>{grid, fl, bnd, radii, cp, L});
     }
-    if (!warm_ready) parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
+    const uint32_t* order = d.list_pass_order();   // the list passes' thread order (grid_launch.h: order_list_passes)
+    if (!warm_ready) parallel_for_in_order(n, order, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, mu, g, L});
     // v += dt gravity (where there is gravity), then v += M^-1 J^T mu_prev: one pass
     const bool gravity = gravity_dv.x != 0.0f || gravity_dv.y != 0.0f || gravity_dv.z != 0.0f;
     parallel_for(n, AddVelocity{warm_ready ? raw(d.pos_tmp) : g, v, gravity_dv, gravity});
     // r = -J v, z = r / diag, p = z
-    parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p});
+    parallel_for_in_order(n, order, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, v, r, diag, L, nullptr, p});
     // Stop once the RMS divergence would change the density by less than divergence_tolerance per step:
     // projecting further only removes flow that the SPH divergence of a disordered particle set misreads.
     const double tol2 = double(d.p.divergence_tolerance) * d.p.divergence_tolerance / (double(d.p.dt) * d.p.dt) * n;
     reduce_into(n, CgDots{r, p, r, r}, Double2{0.0, 0.0}, Double2Add{}, &s->dots, CgBegin{s, tol2});   // (r . z, r . r)
     for (int it = 0; it < d.p.divergence_iterations; ++it) {
         const bool last = it + 1 == d.p.divergence_iterations;
-        parallel_for(n, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});          // g = M^-1 J^T p
+        parallel_for_in_order(n, order, ApplyJT<Policy, Corrected>{grid, fl, bnd, radii, cp, p, g, L, stop});   // g = M^-1 J^T p
         if (!last) {
-            parallel_for(n, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});  // q = A p
+            parallel_for_in_order(n, order, ApplyJ<Policy, Corrected>{grid, fl, bnd, radii, cp, g, q, nullptr, L, stop});   // q = A p
             reduce_into(n, CgDirectionDots{p, q, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);
         } else {   // p . A p = sum m |g|^2: the residual after the last step is not needed
             reduce_into(n, CgDirectionEnergy{fl.pos, g, p, diag}, Double2{0.0, 0.0}, Double2Add{}, &s->direction);

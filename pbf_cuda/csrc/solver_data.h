@@ -76,6 +76,8 @@ struct SolverData {
     dvec<uint32_t> nbr_count, nbr_index;  // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
     uint32_t nbr_width = 32;              // the lists' row width (grows to the longest row seen, grid_launch.h)
     uint32_t nbr_row = 0, nbr_slot = 0;   // their layout: candidate k of particle i at i nbr_row + k nbr_slot
+    dvec<uint32_t> pass_order;            // GPU: the list passes' thread order, tiles by row length (launch.h)
+    bool pass_order_ready = false;
     bool lists_ready = false;             // the lists belong to this step's sorted particles
     bool list_size_pending = false;       // their size is in this step's sums (grid_launch.h: take_list_size)
     bool list_width_settled = false;      // the run's first build has set the width (grid_launch.h)
@@ -125,6 +127,8 @@ struct SolverData {
         }
         return r;
     }
+    // The order in which the list passes' threads take the particles (nullptr: index order).
+    const uint32_t* list_pass_order() const { return lists_ready && pass_order_ready ? raw(pass_order) : nullptr; }
     // The walls' neighbourhoods (offset == nullptr: no walls).
     WallNeighbourhoods wall_neighbourhoods() const {
         if (nb == 0) return WallNeighbourhoods{};
@@ -141,6 +145,9 @@ struct SolverData {
         float_tmp.resize(cap);
         step_sums.resize(1);
         if (p.neighbor_list) nbr_count.resize(cap);
+#ifdef PBF_BACKEND_CUDA
+        if (p.neighbor_list) pass_order.resize(cap);
+#endif
         if (p.vorticity > 0.0f) omega.resize(cap);
         if (p.velocity_projection) {
             cg_r.resize(cap); cg_p.resize(cap); cg_q.resize(cap); cg_diag.resize(cap);
