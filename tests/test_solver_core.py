@@ -222,6 +222,42 @@ def test_cuda_device_arrays_are_zero_copy():
     assert np.allclose(cupy.asnumpy(via_interface), sim.state()["temperature"])
 
 
+_ROW_ORDER_RUN = """
+import hashlib
+import numpy as np
+from pbf_cuda import Simulation, load_scene
+small_cloud = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0,
+               "atmosphere.initial_vapor_ratio": 1.03, "atmosphere.heating_rate": 0.2, "adaptive.capacity": 4.0}
+for name, overrides, steps in (("dam_break", {}, 30), ("growing_adaptive", small_cloud, 40)):
+    sim = Simulation(load_scene(name, **overrides), backend="cuda", seed=0)
+    sim.step(steps)
+    st = sim.state()
+    digest = hashlib.sha256(b"".join(np.ascontiguousarray(st[k]).tobytes() for k in sorted(st))).hexdigest()
+    print(name, sim.stats()["splits"], digest)
+"""
+
+
+@pytest.mark.gpu
+def test_gpu_row_order_decides_only_which_thread_computes_a_particle():
+    """The list passes' threads take each tile of particles longest row first (launch.h: order_tiles_by_length).
+    With that order switched off (CLOUDPBF_ROW_ORDER=0, read once per process) every state is the same to the bit:
+    a dam break (rows of a free surface and of walls beside the bulk's) and an adaptive cloud that splits (rows of
+    two levels)."""
+    import os
+    import subprocess
+    import sys
+
+    def run(env):
+        out = subprocess.run([sys.executable, "-c", _ROW_ORDER_RUN], env={**os.environ, **env},
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split("\n")
+
+    ordered, index_order = run({}), run({"CLOUDPBF_ROW_ORDER": "0"})
+    assert ordered == index_order
+    assert int(ordered[1].split()[1]) > 0   # the adaptive cloud refined: fine and coarse rows side by side
+
+
 def _list_cases():
     small_cloud = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0,
                    "atmosphere.initial_vapor_ratio": 1.03, "atmosphere.heating_rate": 0.2}

@@ -4,6 +4,8 @@
 // PBF_BACKEND_CUDA for nvcc), and this header opens that namespace:
 //   parallel_for(n, f)          f(i) for i in [0, n): one CUDA thread per item, or a Thrust for_each (OpenMP loop)
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
+//   parallel_for_in_order(n, order, f)  f(order[t]) on thread t (GPU; the CPU keeps the index order), and
+//   order_tiles_by_length(n, length, min_saving, order)  that order: each block's tile longest item first (GPU)
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
 //   reduce_into(n, f, init, op, out[, then])  the same into *out in device memory: the host does not wait (one
 //                               launch); then() runs once after the value is written
@@ -220,9 +222,10 @@ void parallel_for_in_order(std::size_t n, const uint32_t* order, const F& f) {
 }
 
 // The order of the neighbour-list passes' threads (parallel_for_in_order): a warp runs as long as its longest row
-// (the rounds of its longest particle's candidate loop), and in the sort's order a warp's 32 particles mix rows of
-// 29 to 89 candidates where fine and coarse particles meet (cycling_adaptive at step 601: the warps' longest rows sum
-// to 1.16 times their mean rows; docs/benchmarks.md, "Rows of equal length"). So each tile of kRowTile consecutive
+// (the rounds of its longest particle's candidate loop), and in the sort's order a warp's 32 particles mix long and
+// short rows where fine and coarse particles meet (cycling_adaptive at step 601: rows of 8 to 89 candidates, and the
+// warps' longest rows sum to 1.16 times their mean rows; docs/benchmarks.md, "Rows of equal length", and
+// benchmarks/row_balance.py). So each tile of kRowTile consecutive
 // particles (one block of parallel_for_in_order, whose four warps share their lines in the SM's L1) is ordered by
 // its particles' row length, longest first, in buckets of four candidates (kListBatch's rounds): order[base + rank]
 // = i, where that shortens the tile's four warps by at least min_saving candidates in all. Elsewhere order[i] = i,
