@@ -225,10 +225,10 @@ void parallel_for_in_order(std::size_t n, const uint32_t* order, const F& f) {
 // (the rounds of its longest particle's candidate loop), and in the sort's order a warp's 32 particles mix long and
 // short rows where fine and coarse particles meet (cycling_adaptive at step 601: rows of 8 to 89 candidates, and the
 // warps' longest rows sum to 1.16 times their mean rows; docs/benchmarks.md, "Rows of equal length", and
-// benchmarks/row_balance.py). So each tile of kRowTile consecutive
-// particles (one block of parallel_for_in_order, whose four warps share their lines in the SM's L1) is ordered by
-// its particles' row length, longest first, in buckets of four candidates (kListBatch's rounds): order[base + rank]
-// = i, where that shortens the tile's four warps by at least min_saving candidates in all. Elsewhere order[i] = i,
+// benchmarks/row_balance.py). So each tile of kRowTile consecutive particles (one block of parallel_for_in_order,
+// whose four warps share their lines in the SM's L1) is ordered by its particles' row length, longest first, in
+// buckets of four candidates (kListBatch's rounds): order[base + rank] = i, where that shortens the tile's four
+// warps by at least min_saving candidates in all. Elsewhere order[i] = i,
 // and the warps read their rows' slots in whole lines: a permuted warp reads each slot of its rows from four lines
 // instead of one, which cost the 1M-particle `growing` more than its rows' lengths saved with every tile permuted.
 // Particles of a bucket take their ranks in the order their threads reach the shared counter: that decides which
