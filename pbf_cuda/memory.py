@@ -113,18 +113,20 @@ def solver_bytes_per_slot(scene: Scene) -> int:
     return int(bytes_)
 
 
-def neighbor_list_bytes_per_slot(scene: Scene, slots: int = 1) -> int:
+def neighbor_list_bytes_per_slot(scene: Scene, slots: int = 1, backend: str = "cpu") -> int:
     """Bytes per particle slot of the per-step neighbour lists (pbf.neighbor_list): a count and a row of
     uint32 candidates, the row LIST_ROW_WIDTH times the candidates within (1 + skin) kernel radii of a full
-    lattice neighbourhood (ADAPTIVE_LIST_ROW_WIDTH in adaptive scenes). Past MAX_LIST_ENTRIES slots in all
-    (`slots` rows) the solver gives the lists up and searches the cells (grid_launch.h): the counts only."""
+    lattice neighbourhood (ADAPTIVE_LIST_ROW_WIDTH in adaptive scenes), and on the GPU the list passes' thread
+    order (a uint32, solver_data.h: pass_order). Past MAX_LIST_ENTRIES slots in all (`slots` rows) the solver gives
+    the lists up and searches the cells (grid_launch.h): the counts (and the order) only."""
     if not scene.pbf.neighbor_list:
         return 0
+    per_slot = UINT * (2 if backend == "cuda" else 1)
     candidates = 4.0 / 3.0 * math.pi * (1.1 * scene.particles.kernel_ratio) ** 3
     width = candidates * (ADAPTIVE_LIST_ROW_WIDTH if scene.adaptive.enabled else LIST_ROW_WIDTH)
     if slots * width > MAX_LIST_ENTRIES:
-        return 4
-    return 4 + int(math.ceil(4 * width))
+        return per_slot
+    return per_slot + int(math.ceil(UINT * width))
 
 
 def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None,
@@ -135,7 +137,7 @@ def estimate_memory(scene: Scene, backend: str = "cpu", fluid: int | None = None
     slots = particle_slots(scene, n)
     nb = boundary_count(scene) if boundary is None else int(boundary)
     cells = cell_count(scene)
-    per_slot = solver_bytes_per_slot(scene) + neighbor_list_bytes_per_slot(scene, slots)
+    per_slot = solver_bytes_per_slot(scene) + neighbor_list_bytes_per_slot(scene, slots, backend)
     device = slots * per_slot + nb * BYTES_PER_BOUNDARY + cells * BYTES_PER_CELL
     host = n * HOST_BYTES_PER_PARTICLE + nb * HOST_BYTES_PER_BOUNDARY
     return MemoryEstimate(n, slots, nb, cells, device, host)
