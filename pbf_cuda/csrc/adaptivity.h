@@ -39,6 +39,17 @@ namespace pbf {
 
 enum AdaptFlag : uint8_t { kMergeCandidate = 1, kSplitCandidate = 2, kDead = 4, kMergedNow = 8, kSplitNow = 16 };
 
+// The counts of one splitting and merging, written in device memory as the step goes and read by the host once, after
+// the compaction's selection (adaptivity_launch.h: adapt): the kernels in between read them where they are, so the
+// host does not wait for each.
+struct AdaptCounts {
+    uint32_t merge_passes;   // bit (cx % 3) + 3 (cy % 3) + 9 (cz % 3): that colour's cells hold a merge pair
+    uint32_t candidates;     // split candidates (the first entries of SolverData::split_candidates)
+    uint32_t winners;        // candidates that won their conflicts
+    uint32_t after_splits;   // particles after the splits: n + min(winners, capacity - n)
+    uint32_t alive;          // particles the compaction keeps
+};
+
 struct AdaptParams {
     float k_p, k_c, split_threshold, merge_threshold;
     int max_level;
@@ -198,6 +209,7 @@ struct ApplySplits {
     const uint32_t* candidates;
     const uint32_t* slot;
     uint8_t* flags;
+    float* mu;             // the velocity projection's warm start (nullptr: none): a child starts from zero
     Float4* pos;
     Float4* vel;
     uint32_t* id;
@@ -229,12 +241,38 @@ struct ApplySplits {
             vapor[k] = vapor[i];
             cloud[k] = cloud[i];
         }
+        if (mu) mu[k] = 0.0f;
         flags[k] = 0;
     }
 };
 
+// The splits' totals from the decisions' inclusive scan (one thread): winners = slot[candidates - 1], and the
+// particles after the splits, those that fit in the capacity (ApplySplits gives the rest no slot).
+struct SplitTotals {
+    uint32_t n, capacity;
+    const uint32_t* slot;
+    AdaptCounts* counts;
+    PBF_HD void operator()() const {
+        const uint32_t winners = counts->candidates ? slot[counts->candidates - 1] : 0u;
+        counts->winners = winners;
+        counts->after_splits = n + (winners < capacity - n ? winners : capacity - n);
+    }
+};
+
+// Particles the compaction keeps: those below the count after the splits that no merge consumed.
+struct KeptAfterMerges {
+    const uint8_t* flags;
+    const AdaptCounts* counts;
+    PBF_HD bool operator()(uint32_t i) const { return i < counts->after_splits && !(flags[i] & kDead); }
+};
+
 // Each merge candidate's partner: the closest same-level candidate within h_l (ties: lower index).
 // Read-only and fully parallel; the passes below only consume the pairs.
+// Where the step's lists are attached (SolverData::fluid_ranges_with_narrowed_lists) and hold particle i's whole row,
+// its row is read instead of the 27 cells: narrowed at the final x*, it holds every pair within the pair's support
+// there, and a same-level pair's support is h_l. The distances are those of the cell search (the same expression on
+// the same committed positions), and the choice does not depend on the visiting order, so the partner is the cell
+// search's, unless a distance rounds across h_l between x* and its wrapped copy.
 struct FindMergePartners {
     GridGeometry grid;
     CellRanges fluid;
@@ -244,13 +282,28 @@ struct FindMergePartners {
     PBF_HD void operator()(uint32_t i) const {
         uint32_t best = 0xffffffffu;
         if (flags[i] & kMergeCandidate) {
-            Float4 pi = fluid.pos[i];
-            float hl = radii.h[radii.level_of_mass(pi.w)];
+            const Float4 pi = fluid.pos[i];
+            const Vec3 xi = xyz(pi);
+            const float hl = radii.h[radii.level_of_mass(pi.w)];
             float best_r2 = hl * hl;
-            for_each_neighbor(grid, fluid, xyz(pi), hl, [&](uint32_t j, Vec3, float r2) {
+            auto consider = [&](uint32_t j, float r2) {
                 if (j == i || !(flags[j] & kMergeCandidate) || fluid.pos[j].w != pi.w) return;
                 if (r2 < best_r2 || (r2 == best_r2 && j < best)) { best = j; best_r2 = r2; }
-            });
+            };
+            if (fluid.listed(i)) {
+                const float r2max = hl * hl;
+                const uint32_t count = fluid.nbr_count[i];
+                for (uint32_t k = 0; k < count; ++k) {
+                    const uint32_t j = fluid.candidate(i, k);
+                    if (!(flags[j] & kMergeCandidate)) continue;
+                    const Float4 pj = fluid.pos[j];
+                    const Vec3 r = min_image(grid, Vec3{xi.x - pj.x, xi.y - pj.y, xi.z - pj.z});
+                    const float r2 = dot(r, r);
+                    if (r2 < r2max) consider(j, r2);
+                }
+            } else {
+                for_each_neighbor(grid, fluid, xi, hl, [&](uint32_t j, Vec3, float r2) { consider(j, r2); });
+            }
         }
         partner[i] = best;
     }
@@ -267,6 +320,7 @@ struct MergePass {
     LevelRadii radii;
     int offset[3];
     int per_axis[3];       // cells of this colour along each axis
+    const uint32_t* passes;  // bit (offset x + 3 offset y + 9 offset z) set: this colour has pairs (AdaptCounts)
     const uint32_t* partner;
     uint8_t* flags;
     Float4* pos;           // == fluid.pos (written in place)
@@ -276,6 +330,7 @@ struct MergePass {
     float* cloud;
     template <class Team>
     PBF_HD void operator()(uint32_t t, const Team& team) const {
+        if (!(*passes & (1u << (offset[0] + 3 * offset[1] + 9 * offset[2])))) return;   // no pair in this colour
         int ax = int(t % uint32_t(per_axis[0]));
         int ay = int((t / uint32_t(per_axis[0])) % uint32_t(per_axis[1]));
         int az = int(t / (uint32_t(per_axis[0]) * uint32_t(per_axis[1])));

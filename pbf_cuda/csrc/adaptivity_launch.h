@@ -31,11 +31,6 @@ struct BitOr {
     PBF_HD uint32_t operator()(uint32_t a, uint32_t b) const { return a | b; }
 };
 
-struct IsAlive {
-    const uint8_t* flags;
-    PBF_HD bool operator()(uint32_t i) const { return !(flags[i] & kDead); }
-};
-
 struct HasFlag {
     const uint8_t* flags;
     uint8_t flag;
@@ -63,25 +58,28 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
 }
 
 // Shape energy and split / merge candidates, then each merge candidate's partner (read-only passes).
-inline void mark_candidates(SolverData& d, const CellRanges& fl) {
+// The partners' search reads the step's narrowed lists where they are kept (FindMergePartners).
+inline void mark_candidates(SolverData& d) {
     parallel_for(d.n, MarkCandidates{d.grid, d.ap, d.atm, d.radii, raw(d.pos), raw(d.temperature), raw(d.vapor), raw(d.cloud),
                                      raw(d.energy), raw(d.flags)});
-    parallel_for(d.n, FindMergePartners{d.grid, fl, d.radii, raw(d.flags), raw(d.merge_partner)});
+    parallel_for(d.n, FindMergePartners{d.grid, d.fluid_ranges_with_narrowed_lists(d.pos), d.radii, raw(d.flags),
+                                        raw(d.merge_partner)});
 }
 
-// The race-free parallel merge: 27 passes, each over the cells of one colour (cell coordinates modulo 3),
-// skipping the passes whose cells hold no pair.
+// The race-free parallel merge: 27 passes, each over the cells of one colour (cell coordinates modulo 3). The colours
+// whose cells hold a pair are OR-ed into the counts in device memory, and a pass without one returns at once: the
+// host launches all 27 without waiting for the bits.
 inline void merge_pairs(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
     const GridGeometry& grid = d.grid;
-    uint32_t passes_with_work = reduce_over(d.n, MergePassBit{grid, raw(d.keys), raw(d.merge_partner)}, 0u, BitOr{});
+    AdaptCounts* counts = raw(d.adapt_counts);
+    reduce_into(d.n, MergePassBit{grid, raw(d.keys), raw(d.merge_partner)}, 0u, BitOr{}, &counts->merge_passes);
     for (int oz = 0; oz < 3; ++oz)
         for (int oy = 0; oy < 3; ++oy)
             for (int ox = 0; ox < 3; ++ox) {
-                if (!(passes_with_work & (1u << (ox + 3 * oy + 9 * oz)))) continue;
                 int off[3] = {ox, oy, oz};
-                MergePass mp{grid, fl, d.ap, d.radii, {ox, oy, oz}, {0, 0, 0}, raw(d.merge_partner), raw(d.flags),
-                             raw(d.pos), raw(d.vel),
+                MergePass mp{grid, fl, d.ap, d.radii, {ox, oy, oz}, {0, 0, 0}, &counts->merge_passes,
+                             raw(d.merge_partner), raw(d.flags), raw(d.pos), raw(d.vel),
                              thermo ? raw(d.temperature) : nullptr, thermo ? raw(d.vapor) : nullptr,
                              thermo ? raw(d.cloud) : nullptr};
                 std::size_t threads = 1;
@@ -94,71 +92,64 @@ inline void merge_pairs(SolverData& d, const CellRanges& fl) {
             }
 }
 
-// Gather the split candidates (index order), decide with one team each, then give the winners slots while
-// the capacity lasts. Returns (winners, splits): winners - splits were turned away for want of room.
-inline std::pair<std::size_t, std::size_t> split_particles(SolverData& d, const CellRanges& fl) {
+// Gather the split candidates (index order), decide with one team each, then give the winners slots while the
+// capacity lasts (new children start their warm start from zero). The counts stay in device memory: the
+// candidates' number sizes the decisions' and the slots' walks there (parallel_for_*_upto), and the scan runs over
+// n entries, of which the first `candidates` matter (each entry is 0 or 1, so no sum wraps).
+inline void split_particles(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
-    auto cand_end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
-                                    thrust::counting_iterator<uint32_t>(uint32_t(d.n)), d.split_candidates.begin(),
-                                    HasFlag{raw(d.flags), kSplitCandidate});
-    std::size_t candidates = std::size_t(cand_end - d.split_candidates.begin());
-    std::size_t winners = 0;
-    if (candidates) {
-        parallel_for_teams(candidates, DecideSplits{d.grid, fl, d.ap, d.radii, raw(d.split_candidates), raw(d.energy),
-                                                    raw(d.id), raw(d.flags), raw(d.split_count), uint32_t(d.step)});
-        // Inclusive scan: one read of its last element gives the number of winners.
-        thrust::inclusive_scan(exec(), d.split_count.begin(), d.split_count.begin() + candidates,
-                               d.split_slot.begin());
-        winners = std::size_t(uint32_t(d.split_slot[candidates - 1]));
-    }
-    std::size_t room = d.capacity - d.n;
-    std::size_t splits = std::min(winners, room);
-    if (winners) {
-        parallel_for(candidates, ApplySplits{d.grid, d.ap, d.radii, uint32_t(d.n), uint32_t(d.capacity), d.next_id,
-                                             uint32_t(d.step), raw(d.split_candidates), raw(d.split_slot),
-                                             raw(d.flags), raw(d.pos), raw(d.vel), raw(d.id), raw(d.density),
-                                             thermo ? raw(d.temperature) : nullptr, thermo ? raw(d.vapor) : nullptr,
-                                             thermo ? raw(d.cloud) : nullptr});
-    }
-    d.next_id += uint32_t(splits);
-    if (splits && d.p.velocity_projection)   // new children start their warm start from zero
-        thrust::fill(exec(), d.cg_mu.begin() + d.n, d.cg_mu.begin() + d.n + splits, 0.0f);
-    d.n += splits;
-    return {winners, splits};
+    AdaptCounts* counts = raw(d.adapt_counts);
+    const std::size_t n = d.n;
+    select_into(n, HasFlag{raw(d.flags), kSplitCandidate}, raw(d.split_candidates), &counts->candidates);
+    parallel_for_teams_upto(n, &counts->candidates,
+                            DecideSplits{d.grid, fl, d.ap, d.radii, raw(d.split_candidates), raw(d.energy), raw(d.id),
+                                         raw(d.flags), raw(d.split_count), uint32_t(d.step)});
+    if (n > 0)   // inclusive scan: slot[t] - 1 winners come before candidate t
+        thrust::inclusive_scan(exec(), d.split_count.begin(), d.split_count.begin() + n, d.split_slot.begin());
+    parallel_for_upto(n, &counts->candidates,
+                      ApplySplits{d.grid, d.ap, d.radii, uint32_t(n), uint32_t(d.capacity), d.next_id, uint32_t(d.step),
+                                  raw(d.split_candidates), raw(d.split_slot), raw(d.flags),
+                                  d.p.velocity_projection ? raw(d.cg_mu) : nullptr, raw(d.pos), raw(d.vel), raw(d.id),
+                                  raw(d.density), thermo ? raw(d.temperature) : nullptr,
+                                  thermo ? raw(d.vapor) : nullptr, thermo ? raw(d.cloud) : nullptr});
+    run_once(SplitTotals{uint32_t(n), uint32_t(d.capacity), raw(d.split_slot), counts});
 }
 
-// Drop the particles consumed by merges (kept in order, deterministic); returns how many.
-inline std::size_t compact(SolverData& d) {
-    auto end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
-                               thrust::counting_iterator<uint32_t>(uint32_t(d.n)), d.perm.begin(), IsAlive{raw(d.flags)});
-    std::size_t alive = std::size_t(end - d.perm.begin());
-    std::size_t merges = d.n - alive;
-    if (merges) {
-        d.n = alive;
-        d.permute_all(false);
-    }
-    return merges;
+// Select the particles that stay (in order, deterministic): the splits' children included, the merges' consumed
+// ones left out. Each particle splits at most once, so the children lie below min(2 n, capacity).
+inline void select_kept(SolverData& d) {
+    const std::size_t bound = std::min(2 * d.n, d.capacity);
+    select_into(bound, KeptAfterMerges{raw(d.flags), raw(d.adapt_counts)}, raw(d.perm), &raw(d.adapt_counts)->alive);
 }
 
 // Splitting and merging (section 5.2) on the committed positions. The grid built this step is still valid:
-// positions only moved within their cells (wrapping).
+// positions only moved within their cells (wrapping). The host waits once, for the counts after the compaction's
+// selection, which size the permutation and the next step.
 inline void adapt(SolverData& d) {
     d.clock.begin(kPhaseMerging);
     CellRanges fl = d.fluid_ranges(d.pos);
-    mark_candidates(d, fl);
+    mark_candidates(d);
     d.clock.begin(kPhaseMergePasses);
     merge_pairs(d, fl);
     d.clock.end(kPhaseMergePasses);
     d.clock.end(kPhaseMerging);
 
     d.clock.begin(kPhaseSplitting);
-    std::pair<std::size_t, std::size_t> split = split_particles(d, fl);
-    std::size_t winners = split.first, splits = split.second;
+    split_particles(d, fl);
     d.clock.end(kPhaseSplitting);
 
     d.clock.begin(kPhaseMerging);
     d.clock.begin(kPhaseCompaction);
-    std::size_t merges = compact(d);
+    select_kept(d);
+    const AdaptCounts counts = d.adapt_counts[0];   // the host's one wait of the splitting and merging
+    const std::size_t winners = counts.winners, splits = counts.after_splits - d.n, merges = counts.after_splits - counts.alive;
+    d.next_id += uint32_t(splits);
+    d.n = counts.after_splits;
+    if (merges) {   // drop the particles merges consumed
+        d.n = counts.alive;
+        d.permute_all(false);
+    }
+    d.lists_narrowed = false;   // renumbered, or grown by the splits
     d.clock.end(kPhaseCompaction);
     d.clock.end(kPhaseMerging);
 

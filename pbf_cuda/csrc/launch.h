@@ -6,6 +6,9 @@
 //   parallel_for_teams(n, f)    f(t, team) with one team per item: a warp on the GPU, a thread on the CPU
 //   parallel_for_in_order(n, order, f)  f(order[t]) on thread t (GPU; the CPU keeps the index order), and
 //   order_tiles_by_length(n, length, min_saving, order)  that order: each block's tile longest item first (GPU)
+//   parallel_for_upto(max_n, count, f), parallel_for_teams_upto(max_n, count, f)  the same for i in [0, *count),
+//                               the count in device memory (at most max_n): the host does not wait for it
+//   select_into(n, pred, out, count)  the indices i in [0, n) with pred(i), in order, and their count in device memory
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
 //   reduce_into(n, f, init, op, out[, then])  the same into *out in device memory: the host does not wait (one
 //                               launch); then() runs once after the value is written
@@ -54,6 +57,7 @@
 
 #ifdef PBF_BACKEND_CUDA
 #include <cub/device/device_radix_sort.cuh>
+#include <cub/device/device_select.cuh>
 #include <cuda_runtime.h>
 #endif
 
@@ -491,6 +495,62 @@ void parallel_for_teams(std::size_t n, const F& f) {
     std::size_t threads = n * WarpTeam::kSize;
     launch("team kernel", team_kernel<F>, unsigned((threads + block - 1) / block), block, uint32_t(n), f);
 }
+
+// The counted launches (parallel_for_upto, parallel_for_teams_upto below) walk their items in strides over at most
+// this many blocks: enough to fill the GPU; the items are few where the count is not known on the host (the adaptive
+// step's split candidates).
+constexpr unsigned kCountedBlocks = 2048;
+
+template <class F>
+__global__ void PBF_LAUNCH_BOUNDS for_each_counted_kernel(const uint32_t* count, F f) {
+    wait_for_prior_grids();
+    const uint32_t n = *count;
+    for (uint32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x) f(i);
+}
+template <class F>
+void parallel_for_upto(std::size_t max_n, const uint32_t* count, const F& f) {
+    if (max_n == 0) return;
+    const unsigned block = 128;
+    const std::size_t wanted = (max_n + block - 1) / block;
+    launch("parallel_for_upto", for_each_counted_kernel<F>, unsigned(std::min<std::size_t>(wanted, kCountedBlocks)),
+           block, count, f);
+}
+
+template <class F>
+__global__ void team_counted_kernel(const uint32_t* count, F f) {
+    wait_for_prior_grids();
+    const uint32_t n = *count, teams = gridDim.x * (blockDim.x / WarpTeam::kSize);
+    for (uint32_t t = (blockIdx.x * blockDim.x + threadIdx.x) / WarpTeam::kSize; t < n; t += teams)
+        f(t, WarpTeam{threadIdx.x % WarpTeam::kSize});   // whole warps walk together: t is the warp's
+}
+template <class F>
+void parallel_for_teams_upto(std::size_t max_n, const uint32_t* count, const F& f) {
+    if (max_n == 0) return;
+    const unsigned block = 128;
+    const std::size_t wanted = (max_n * WarpTeam::kSize + block - 1) / block;
+    launch("team kernel (counted)", team_counted_kernel<F>, unsigned(std::min<std::size_t>(wanted, kCountedBlocks)),
+           block, count, f);
+}
+
+// out[0, *count) = the indices i in [0, n) with pred(i), in index order; *count in device memory, so the host does
+// not wait (CUB's DeviceSelect; Thrust's copy_if returns the count to the host, which waits for it).
+template <class Pred>
+void select_into(std::size_t n, const Pred& pred, uint32_t* out, uint32_t* count) {
+    cudaError_t err = cudaSuccess;
+    if (n == 0) {
+        err = cudaMemsetAsync(count, 0, sizeof(uint32_t), cudaStream_t(0));
+    } else {
+        thrust::counting_iterator<uint32_t> first(0);
+        std::size_t bytes = 0;
+        err = cub::DeviceSelect::If(nullptr, bytes, first, out, count, int64_t(n), pred, cudaStream_t(0));
+        if (err == cudaSuccess) {
+            char* tmp = temp_allocator().allocate(std::ptrdiff_t(bytes));
+            err = cub::DeviceSelect::If(tmp, bytes, first, out, count, int64_t(n), pred, cudaStream_t(0));
+            temp_allocator().deallocate(tmp, bytes);
+        }
+    }
+    if (err != cudaSuccess) throw std::runtime_error(std::string("select_into: ") + cudaGetErrorString(err));
+}
 #else
 template <class F>
 struct AsSerialTeam {
@@ -501,6 +561,18 @@ struct AsSerialTeam {
 template <class F>
 void parallel_for_teams(std::size_t n, const F& f) {
     parallel_for(n, AsSerialTeam<F>{f});
+}
+
+// The CPU's device memory is the host's: the counts are read where they are.
+template <class F>
+void parallel_for_upto(std::size_t, const uint32_t* count, const F& f) { parallel_for(*count, f); }
+template <class F>
+void parallel_for_teams_upto(std::size_t, const uint32_t* count, const F& f) { parallel_for_teams(*count, f); }
+template <class Pred>
+void select_into(std::size_t n, const Pred& pred, uint32_t* out, uint32_t* count) {
+    uint32_t* end = thrust::copy_if(exec(), thrust::counting_iterator<uint32_t>(0),
+                                    thrust::counting_iterator<uint32_t>(uint32_t(n)), out, pred);
+    *count = uint32_t(end - out);
 }
 #endif
 
