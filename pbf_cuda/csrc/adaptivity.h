@@ -340,26 +340,42 @@ struct MergePass {
         const BlockSearch<Team> block(team, grid, fluid, c);   // every too-close search of this cell's pairs
         // The cell's particles in chunks of the team's size: one vote finds the chunk's merge candidates with a
         // partner (neither the candidate mark nor the partner changes during the passes), then those are taken one
-        // at a time in index order, their flags read afresh, exactly as a walk over every particle would. Each
-        // lane reads its own candidate's position and its partner's beforehand: only this team writes the block
-        // during the pass, and it moves a particle only by merging it, which its flags then show.
+        // at a time in index order, exactly as a walk over every particle would. Only this team writes the block
+        // during the pass, so each lane reads its own candidate's flags, position and its partner's beforehand, and
+        // the flags a candidate's turn sees are those with this chunk's earlier merges added (lane l's candidate
+        // merged with merged_with: chunk + l took kMergedNow, merged_with kDead); a particle moves only by merging,
+        // which its flags then show. Its velocity and scalars, read beforehand as well, are current wherever it
+        // merges (neither particle of a pair that merges was touched earlier in the chunk), so the candidate's own
+        // lane writes the merged particle.
+        constexpr uint32_t kNone = 0xffffffffu;
         for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
             const uint32_t mine = chunk + team.rank();
-            const bool has_pair = mine < end && (flags[mine] & kMergeCandidate) && partner[mine] != 0xffffffffu;
-            uint32_t my_partner = 0;
-            Float4 my_pos{}, my_partner_pos{};
+            const uint32_t my_flags = mine < end ? flags[mine] : 0u;
+            const bool has_pair = (my_flags & kMergeCandidate) && partner[mine] != kNone;
+            uint32_t my_partner = 0, my_partner_flags = 0, merged_with = kNone;
+            Float4 my_pos{}, my_partner_pos{}, my_vel{}, my_partner_vel{};
+            float my_scalars[3] = {}, partner_scalars[3] = {};   // temperature, vapor, cloud
             if (has_pair) {
                 my_partner = partner[mine];
+                my_partner_flags = flags[my_partner];
                 my_pos = pos[mine];
                 my_partner_pos = pos[my_partner];
+                my_vel = vel[mine];
+                my_partner_vel = vel[my_partner];
+                if (temperature) {
+                    my_scalars[0] = temperature[mine], partner_scalars[0] = temperature[my_partner];
+                    my_scalars[1] = vapor[mine], partner_scalars[1] = vapor[my_partner];
+                    my_scalars[2] = cloud[mine], partner_scalars[2] = cloud[my_partner];
+                }
             }
             for (uint32_t pending = team.ballot(has_pair); pending; pending &= pending - 1u) {
                 const uint32_t lane = lowest_set_bit(pending);
                 const uint32_t i = chunk + lane;
                 const uint32_t best = team.broadcast(my_partner, lane);
-                // Every lane reads the same flags here: the only writes are lane 0's, fenced by sync().
-                const uint8_t fi = flags[i];
-                if ((fi | flags[best]) & (kDead | kMergedNow)) continue;
+                const uint32_t fi = team.broadcast(my_flags, lane), fj = team.broadcast(my_partner_flags, lane);
+                const bool taken_in_chunk = team.any(merged_with != kNone && (merged_with == i || merged_with == best ||
+                                                                               chunk + team.rank() == best));
+                if (taken_in_chunk || ((fi | fj) & (kDead | kMergedNow))) continue;
                 const Float4 pi = team.broadcast(my_pos, lane);
                 const Float4 pj = team.broadcast(my_partner_pos, lane);
                 Vec3 xi = xyz(pi);
@@ -371,18 +387,19 @@ struct MergePass {
                         return !(k == i || k == best || (flags[k] & kDead));
                     }))
                     continue;
-                if (team.rank() == 0) {
-                    uint32_t j = best;
-                    Float4 vi = vel[i], vj = vel[j];
+                if (team.rank() == lane) {   // the candidate's lane, which holds both particles' fields
+                    const uint32_t j = best;
+                    const Float4 vi = my_vel, vj = my_partner_vel;
                     pos[i] = make_float4(wrap_position(grid, mid), pi.w + pj.w);  // exact: 2 m_l = m_{l-1}
                     vel[i] = Float4{0.5f * (vi.x + vj.x), 0.5f * (vi.y + vj.y), 0.5f * (vi.z + vj.z), 0.0f};
                     if (temperature) {
-                        temperature[i] = 0.5f * (temperature[i] + temperature[j]);
-                        vapor[i] = 0.5f * (vapor[i] + vapor[j]);
-                        cloud[i] = 0.5f * (cloud[i] + cloud[j]);
+                        temperature[i] = 0.5f * (my_scalars[0] + partner_scalars[0]);
+                        vapor[i] = 0.5f * (my_scalars[1] + partner_scalars[1]);
+                        cloud[i] = 0.5f * (my_scalars[2] + partner_scalars[2]);
                     }
-                    flags[i] = fi | kMergedNow;
-                    flags[j] |= kDead;
+                    flags[i] = uint8_t(fi | kMergedNow);
+                    flags[j] = uint8_t(fj | kDead);
+                    merged_with = j;
                 }
                 team.sync();
             }
