@@ -16,7 +16,7 @@
 // candidate within h_l, a read-only parallel pass). Teams of threads then run over grid cells, not
 // particles (Figure 4): cells are processed in 27 passes, a pass taking every cell whose coordinates
 // are congruent to the pass offset modulo 3 (periodic axes have a cell count divisible by 3 when
-// adaptive, so the pattern holds across the wrap); passes whose cells hold no pair are skipped. The team
+// adaptive, so the pattern holds across the wrap); cells that hold no pair are passed over. The team
 // working on cell A reads and writes only particles in A and its 26 neighbours (A +- 1): the partner
 // search radius h_l <= h0 <= cell side, and the too-close check around the midpoint
 // m = (x_i + x_j)/2 covers |x - m| < min_distance h_{l-1} <= 0.5 h0 with |m - x_i| <= h_l/2, so every
@@ -28,7 +28,9 @@
 // is seen whenever its cell lies in the block (min_distance <= 0.5 is enforced by the scene). Inside a team
 // the cell's particles are taken one at a time in index order, so the outcome does not depend on the
 // team size. The merged particle replaces i at the midpoint (mass-weighted averages: equal masses);
-// j is marked dead and removed by the compaction that follows.
+// j is marked dead and removed by the compaction that follows. A team's block meets only the blocks of the cells
+// within 2 of A, so A's team needs only those of earlier passes to have finished: on the GPU the 27 passes are one
+// launch in which each team waits for just those (launch.h: for_each_cell_by_colour), with the passes' results.
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -43,7 +45,6 @@ enum AdaptFlag : uint8_t { kMergeCandidate = 1, kSplitCandidate = 2, kDead = 4, 
 // the compaction's selection (adaptivity_launch.h: adapt): the kernels in between read them where they are, so the
 // host does not wait for each.
 struct AdaptCounts {
-    uint32_t merge_passes;   // bit (cx % 3) + 3 (cy % 3) + 9 (cz % 3): that colour's cells hold a merge pair
     uint32_t candidates;     // split candidates (the first entries of SolverData::split_candidates)
     uint32_t winners;        // candidates that won their conflicts
     uint32_t after_splits;   // particles after the splits: n + min(winners, capacity - n)
@@ -309,18 +310,15 @@ struct FindMergePartners {
     }
 };
 
-// One pass of the race-free parallel merge: one team of threads per cell of the pass's colour (a warp on
-// the GPU, one thread on the CPU). The team walks the cell's particles in index order, exactly as one
-// thread would; its lanes share only each midpoint's too-close search and vote on it, and lane 0 writes.
+// The race-free parallel merge, one cell's team (a warp on the GPU, one thread on the CPU), called for the cells in
+// 27 colours (launch.h: for_each_cell_by_colour). The team walks the cell's particles in index order, exactly as one
+// thread would; its lanes share only each midpoint's too-close search and vote on it, and the candidate's lane writes.
 // The result is therefore the same for any team size.
-struct MergePass {
+struct MergeCell {
     GridGeometry grid;
     CellRanges fluid;
     AdaptParams ap;
     LevelRadii radii;
-    int offset[3];
-    int per_axis[3];       // cells of this colour along each axis
-    const uint32_t* passes;  // bit (offset x + 3 offset y + 9 offset z) set: this colour has pairs (AdaptCounts)
     const uint32_t* partner;
     uint8_t* flags;
     Float4* pos;           // == fluid.pos (written in place)
@@ -328,20 +326,26 @@ struct MergePass {
     float* temperature;
     float* vapor;
     float* cloud;
+    // Whether the cell holds a merge candidate with a partner (neither changes while the cells merge).
     template <class Team>
-    PBF_HD void operator()(uint32_t t, const Team& team) const {
-        if (!(*passes & (1u << (offset[0] + 3 * offset[1] + 9 * offset[2])))) return;   // no pair in this colour
-        int ax = int(t % uint32_t(per_axis[0]));
-        int ay = int((t / uint32_t(per_axis[0])) % uint32_t(per_axis[1]));
-        int az = int(t / (uint32_t(per_axis[0]) * uint32_t(per_axis[1])));
-        int c[3] = {offset[0] + 3 * ax, offset[1] + 3 * ay, offset[2] + 3 * az};
+    PBF_HD bool busy(const int c[3], const Team& team) const {
+        const uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
+        const uint32_t end = fluid.end[cell];
+        for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
+            const uint32_t mine = chunk + team.rank();
+            if (team.any(mine < end && (flags[mine] & kMergeCandidate) && partner[mine] != 0xffffffffu)) return true;
+        }
+        return false;
+    }
+    template <class Team>
+    PBF_HD void operator()(const int c[3], const Team& team) const {
         uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
         const uint32_t end = fluid.end[cell];
         const BlockSearch<Team> block(team, grid, fluid, c);   // every too-close search of this cell's pairs
         // The cell's particles in chunks of the team's size: one vote finds the chunk's merge candidates with a
         // partner (neither the candidate mark nor the partner changes during the passes), then those are taken one
-        // at a time in index order, exactly as a walk over every particle would. Only this team writes the block
-        // during the pass, so each lane reads its own candidate's flags, position and its partner's beforehand, and
+        // at a time in index order, exactly as a walk over every particle would. Only this team touches the block
+        // while it runs, so each lane reads its own candidate's flags, position and its partner's beforehand, and
         // the flags a candidate's turn sees are those with this chunk's earlier merges added (lane l's candidate
         // merged with merged_with: chunk + l took kMergedNow, merged_with kDead); a particle moves only by merging,
         // which its flags then show. Its velocity and scalars, read beforehand as well, are current wherever it

@@ -13,24 +13,6 @@ namespace pbf {
 namespace PBF_BACKEND_NS {
 
 
-// Bit (cx % 3) + 3 (cy % 3) + 9 (cz % 3) of the merge pass that holds particle i's cell, when i has a
-// merge partner (0 otherwise); OR-reduced to skip passes with nothing to merge.
-struct MergePassBit {
-    GridGeometry g;
-    const uint32_t* keys;
-    const uint32_t* partner;
-    PBF_HD uint32_t operator()(uint32_t i) const {
-        if (partner[i] == 0xffffffffu) return 0u;
-        uint32_t c[3];
-        cell_coords(g, keys[i] / kSubCells, c);  // adaptive runs sort by nested keys (grid.h)
-        return 1u << ((c[0] % 3) + 3 * (c[1] % 3) + 9 * (c[2] % 3));
-    }
-};
-
-struct BitOr {
-    PBF_HD uint32_t operator()(uint32_t a, uint32_t b) const { return a | b; }
-};
-
 struct HasFlag {
     const uint8_t* flags;
     uint8_t flag;
@@ -66,30 +48,16 @@ inline void mark_candidates(SolverData& d) {
                                         raw(d.merge_partner)});
 }
 
-// The race-free parallel merge: 27 passes, each over the cells of one colour (cell coordinates modulo 3). The colours
-// whose cells hold a pair are OR-ed into the counts in device memory, and a pass without one returns at once: the
-// host launches all 27 without waiting for the bits.
+// The race-free parallel merge (MergeCell): the cells in 27 colours, colour after colour where their neighbourhoods
+// overlap (for_each_cell_by_colour; on the GPU one launch, each cell's team waiting only for the earlier colours'
+// teams within 2 cells), the cells without a pair passed over.
 inline void merge_pairs(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
-    const GridGeometry& grid = d.grid;
-    AdaptCounts* counts = raw(d.adapt_counts);
-    reduce_into(d.n, MergePassBit{grid, raw(d.keys), raw(d.merge_partner)}, 0u, BitOr{}, &counts->merge_passes);
-    for (int oz = 0; oz < 3; ++oz)
-        for (int oy = 0; oy < 3; ++oy)
-            for (int ox = 0; ox < 3; ++ox) {
-                int off[3] = {ox, oy, oz};
-                MergePass mp{grid, fl, d.ap, d.radii, {ox, oy, oz}, {0, 0, 0}, &counts->merge_passes,
-                             raw(d.merge_partner), raw(d.flags), raw(d.pos), raw(d.vel),
-                             thermo ? raw(d.temperature) : nullptr, thermo ? raw(d.vapor) : nullptr,
-                             thermo ? raw(d.cloud) : nullptr};
-                std::size_t threads = 1;
-                for (int a = 0; a < 3; ++a) {
-                    int cnt = grid.dims[a] > off[a] ? (grid.dims[a] - off[a] + 2) / 3 : 0;
-                    mp.per_axis[a] = cnt;
-                    threads *= std::size_t(cnt);
-                }
-                parallel_for_teams(threads, mp);
-            }
+    d.colour_epoch += 1;
+    for_each_cell_by_colour(d.grid.dims, d.grid.periodic, raw(d.colour_done), d.colour_epoch,
+                            MergeCell{d.grid, fl, d.ap, d.radii, raw(d.merge_partner), raw(d.flags), raw(d.pos),
+                                      raw(d.vel), thermo ? raw(d.temperature) : nullptr,
+                                      thermo ? raw(d.vapor) : nullptr, thermo ? raw(d.cloud) : nullptr});
 }
 
 // Gather the split candidates (index order), decide with one team each, then give the winners slots while the

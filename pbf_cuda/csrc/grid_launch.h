@@ -128,6 +128,8 @@ inline void allocate_grid(SolverData& d) {
         d.sub_end.resize(std::size_t(d.grid.num_cells()) * kSubCells);
         d.sub_radius.resize(std::size_t(d.grid.num_cells()) * kSubCells);
         d.cell_radius.resize(d.grid.num_cells());
+        d.colour_done.assign(d.grid.num_cells(), 0u);   // below every epoch of the merge walk (from 1 on)
+        d.colour_epoch = 0;
     }
 }
 

@@ -103,6 +103,8 @@ struct SolverData {
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
     dvec<uint32_t> split_count, split_slot, split_candidates, merge_partner;
     dvec<AdaptCounts> adapt_counts;          // adaptive runs: one splitting and merging's counts (one), in device memory
+    dvec<uint32_t> colour_done;              // adaptive runs: per cell, the merge walk's mark (launch.h: for_each_cell_by_colour)
+    uint32_t colour_epoch = 0;               // the last merge walk's mark
     // Boundary particles (walls), sorted by cell once: they never move. Each cell's boundary candidates, gathered
     // once (grid.h, WallNeighbourhoods; boundaries_launch.h).
     dvec<Float4> bpos;
