@@ -41,9 +41,9 @@ namespace pbf {
 
 enum AdaptFlag : uint8_t { kMergeCandidate = 1, kSplitCandidate = 2, kDead = 4, kMergedNow = 8, kSplitNow = 16 };
 
-// The counts of one splitting and merging, written in device memory as the step goes and read by the host once, after
-// the compaction's selection (adaptivity_launch.h: adapt): the kernels in between read them where they are, so the
-// host does not wait for each.
+// The counts of one splitting and merging, written in device memory as the step goes and read by the host with the
+// step's other sums (StepSums, diagnostics.h; adaptivity_launch.h: adapt, finish_adapt): the kernels read them where
+// they are, so the host does not wait for any of them.
 struct AdaptCounts {
     uint32_t candidates;     // split candidates (the first entries of SolverData::split_candidates)
     uint32_t winners;        // candidates that won their conflicts
@@ -326,41 +326,53 @@ struct MergeCell {
     float* temperature;
     float* vapor;
     float* cloud;
-    // Whether the cell holds a merge candidate with a partner (neither changes while the cells merge).
+    // A cell's team before its turn: what no other team changes while the cells merge (the cells' ranges, the merge
+    // candidates' marks and partners), read before the team waits for its turn (launch.h: for_each_cell_by_colour).
     template <class Team>
-    PBF_HD bool busy(const int c[3], const Team& team) const {
+    struct Turn {
+        uint32_t start, end;
+        BlockSearch<Team> block;   // every too-close search of this cell's pairs
+        uint32_t first_partner;    // the partner of this lane's particle of the cell's first chunk (kNone: none)
+        bool busy;                 // the cell holds a merge candidate with a partner
+    };
+    static constexpr uint32_t kNone = 0xffffffffu;
+    template <class Team>
+    PBF_HD Turn<Team> prepare(const int c[3], const Team& team) const {
         const uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
-        const uint32_t end = fluid.end[cell];
-        for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
-            const uint32_t mine = chunk + team.rank();
-            if (team.any(mine < end && (flags[mine] & kMergeCandidate) && partner[mine] != 0xffffffffu)) return true;
+        const uint32_t start = fluid.start[cell], end = fluid.end[cell];
+        const uint32_t mine = start + team.rank();
+        const uint32_t first_partner = mine < end ? partner[mine] : kNone;
+        // Only the candidate mark is read of the flags, which no team changes (others set the other bits meanwhile).
+        bool busy = team.any(first_partner != kNone && (flags[mine] & kMergeCandidate));
+        for (uint32_t chunk = start + Team::kSize; chunk < end && !busy; chunk += Team::kSize) {
+            const uint32_t i = chunk + team.rank();
+            busy = team.any(i < end && partner[i] != kNone && (flags[i] & kMergeCandidate));
         }
-        return false;
+        return Turn<Team>{start, end, BlockSearch<Team>(team, grid, fluid, c), first_partner, busy};
     }
     template <class Team>
-    PBF_HD void operator()(const int c[3], const Team& team) const {
-        uint32_t cell = cell_index(grid, c[0], c[1], c[2]);
-        const uint32_t end = fluid.end[cell];
-        const BlockSearch<Team> block(team, grid, fluid, c);   // every too-close search of this cell's pairs
+    PBF_HD void operator()(const Turn<Team>& turn, const Team& team) const {
+        const uint32_t end = turn.end;
+        const BlockSearch<Team>& block = turn.block;
         // The cell's particles in chunks of the team's size: one vote finds the chunk's merge candidates with a
-        // partner (neither the candidate mark nor the partner changes during the passes), then those are taken one
-        // at a time in index order, exactly as a walk over every particle would. Only this team touches the block
-        // while it runs, so each lane reads its own candidate's flags, position and its partner's beforehand, and
-        // the flags a candidate's turn sees are those with this chunk's earlier merges added (lane l's candidate
+        // partner (neither the candidate mark nor the partner changes while the cells merge), then those are taken
+        // one at a time in index order, exactly as a walk over every particle would. Only this team touches the
+        // block while it runs, so each lane reads its own candidate's flags, position and its partner's beforehand,
+        // and the flags a candidate's turn sees are those with this chunk's earlier merges added (lane l's candidate
         // merged with merged_with: chunk + l took kMergedNow, merged_with kDead); a particle moves only by merging,
         // which its flags then show. Its velocity and scalars, read beforehand as well, are current wherever it
         // merges (neither particle of a pair that merges was touched earlier in the chunk), so the candidate's own
         // lane writes the merged particle.
-        constexpr uint32_t kNone = 0xffffffffu;
-        for (uint32_t chunk = fluid.start[cell]; chunk < end; chunk += Team::kSize) {
+        for (uint32_t chunk = turn.start; chunk < end; chunk += Team::kSize) {
             const uint32_t mine = chunk + team.rank();
             const uint32_t my_flags = mine < end ? flags[mine] : 0u;
-            const bool has_pair = (my_flags & kMergeCandidate) && partner[mine] != kNone;
+            const uint32_t candidate_partner = chunk == turn.start ? turn.first_partner : (mine < end ? partner[mine] : kNone);
+            const bool has_pair = (my_flags & kMergeCandidate) && candidate_partner != kNone;
             uint32_t my_partner = 0, my_partner_flags = 0, merged_with = kNone;
             Float4 my_pos{}, my_partner_pos{}, my_vel{}, my_partner_vel{};
             float my_scalars[3] = {}, partner_scalars[3] = {};   // temperature, vapor, cloud
             if (has_pair) {
-                my_partner = partner[mine];
+                my_partner = candidate_partner;
                 my_partner_flags = flags[my_partner];
                 my_pos = pos[mine];
                 my_partner_pos = pos[my_partner];

@@ -54,8 +54,7 @@ inline void mark_candidates(SolverData& d) {
 inline void merge_pairs(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
     d.colour_epoch += 1;
-    for_each_cell_by_colour(d.grid.dims, d.grid.periodic, raw(d.colour_done), d.colour_epoch,
-                            MergeCell{d.grid, fl, d.ap, d.radii, raw(d.merge_partner), raw(d.flags), raw(d.pos),
+    for_each_cell_by_colour(d.grid.dims, d.grid.periodic, raw(d.colour_done), d.colour_epoch, MergeCell{d.grid, fl, d.ap, d.radii, raw(d.merge_partner), raw(d.flags), raw(d.pos),
                                       raw(d.vel), thermo ? raw(d.temperature) : nullptr,
                                       thermo ? raw(d.vapor) : nullptr, thermo ? raw(d.cloud) : nullptr});
 }
@@ -66,7 +65,7 @@ inline void merge_pairs(SolverData& d, const CellRanges& fl) {
 // n entries, of which the first `candidates` matter (each entry is 0 or 1, so no sum wraps).
 inline void split_particles(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
-    AdaptCounts* counts = raw(d.adapt_counts);
+    AdaptCounts* counts = &raw(d.step_sums)->adapt;
     const std::size_t n = d.n;
     select_into(n, HasFlag{raw(d.flags), kSplitCandidate}, raw(d.split_candidates), &counts->candidates);
     parallel_for_teams_upto(n, &counts->candidates,
@@ -83,17 +82,14 @@ inline void split_particles(SolverData& d, const CellRanges& fl) {
     run_once(SplitTotals{uint32_t(n), uint32_t(d.capacity), raw(d.split_slot), counts});
 }
 
-// Select the particles that stay (in order, deterministic): the splits' children included, the merges' consumed
-// ones left out. Each particle splits at most once, so the children lie below min(2 n, capacity).
-inline void select_kept(SolverData& d) {
-    const std::size_t bound = std::min(2 * d.n, d.capacity);
-    select_into(bound, KeptAfterMerges{raw(d.flags), raw(d.adapt_counts)}, raw(d.perm), &raw(d.adapt_counts)->alive);
-}
-
 // Splitting and merging (section 5.2) on the committed positions. The grid built this step is still valid:
-// positions only moved within their cells (wrapping). The host waits once, for the counts after the compaction's
-// selection, which size the permutation and the next step.
+// positions only moved within their cells (wrapping). The host waits for none of its counts: the compaction selects
+// the particles that stay (in order, deterministic: the splits' children included, the merges' consumed ones left
+// out) among the first min(2 n, capacity) slots (each particle splits at most once), and permutes that many slots'
+// threads, those past the count returning at once. The counts come to the host with the step's sums, and
+// finish_adapt then sets the particle count; until then d.n is that bound.
 inline void adapt(SolverData& d) {
+    AdaptCounts* counts = &raw(d.step_sums)->adapt;
     d.clock.begin(kPhaseMerging);
     CellRanges fl = d.fluid_ranges(d.pos);
     mark_candidates(d);
@@ -108,19 +104,25 @@ inline void adapt(SolverData& d) {
 
     d.clock.begin(kPhaseMerging);
     d.clock.begin(kPhaseCompaction);
-    select_kept(d);
-    const AdaptCounts counts = d.adapt_counts[0];   // the host's one wait of the splitting and merging
-    const std::size_t winners = counts.winners, splits = counts.after_splits - d.n, merges = counts.after_splits - counts.alive;
-    d.next_id += uint32_t(splits);
-    d.n = counts.after_splits;
-    if (merges) {   // drop the particles merges consumed
-        d.n = counts.alive;
-        d.permute_all(false);
-    }
-    d.lists_narrowed = false;   // renumbered, or grown by the splits
+    d.adapt_waiting = true;
+    d.adapt_from = d.n;
+    d.n = std::min(2 * d.n, d.capacity);
+    select_into(d.n, KeptAfterMerges{raw(d.flags), counts}, raw(d.perm), &counts->alive);
+    d.permute_all(false, &counts->alive);
+    d.lists_narrowed = false;   // renumbered, and grown by the splits
     d.clock.end(kPhaseCompaction);
     d.clock.end(kPhaseMerging);
+}
 
+// The particle count and the statistics of the step's splitting and merging, from its counts as the host read them
+// (with the step's sums); nothing where the step did not adapt.
+inline void finish_adapt(SolverData& d, const AdaptCounts& counts) {
+    if (!d.adapt_waiting) return;
+    const std::size_t before = d.adapt_from, winners = counts.winners, splits = counts.after_splits - before,
+                      merges = counts.after_splits - counts.alive;
+    d.adapt_waiting = false;
+    d.n = counts.alive;
+    d.next_id += uint32_t(splits);
     StepStats& s = d.last_stats;
     s.split_last = (long long)splits;
     s.merge_last = (long long)merges;

@@ -6,6 +6,7 @@
 
 #include "common.h"
 #include "pbf_constraints.h"
+#include "adaptivity.h"
 #include "thermodynamics.h"
 
 namespace pbf {
@@ -157,6 +158,7 @@ struct StepSums {
     float shift;                                 // the column's vertical shift to remove, m
     Reduced checks;                              // the stability check's sums, where the step is checked
     ListSize list_size;                          // the neighbour lists' size (neighbor_list.h), where built
+    AdaptCounts adapt;                           // the splitting and merging's counts, where the step adapted
 };
 
 }  // namespace pbf

@@ -99,15 +99,27 @@ inline ParticleCheck make_check(const SolverData& d) {
                          d.p.unilateral, vmax * vmax};
 }
 
-inline Reduced no_checks() {
+PBF_HD inline Reduced no_checks() {
     Reduced init;
     init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.why = 0; init.speed2_max = 0.0f; init.bad = 0;
     for (int k = 0; k < 3; ++k) { init.lo[k] = INFINITY; init.hi[k] = -INFINITY; }
     return init;
 }
 inline Reduced reduce_checks(const SolverData& d) { return reduce_over(d.n, make_check(d), no_checks(), ReduceOp{}); }
+// The check over the particles that are there, where the step adapted and the count is still in device memory
+// (SolverData::adapt_waiting: d.n is a bound, the particles the count in the step's sums).
+template <class F>
+struct CheckBelowCount {
+    F check;
+    const uint32_t* count;
+    PBF_HD Reduced operator()(uint32_t i) const { return i < *count ? check(i) : no_checks(); }
+};
 inline void reduce_checks_into(const SolverData& d, Reduced* out) {
-    reduce_into(d.n, make_check(d), no_checks(), ReduceOp{}, out);
+    if (d.adapt_waiting)
+        reduce_into(d.n, CheckBelowCount<ParticleCheck>{make_check(d), &raw(d.step_sums)->adapt.alive}, no_checks(),
+                    ReduceOp{}, out);
+    else
+        reduce_into(d.n, make_check(d), no_checks(), ReduceOp{}, out);
 }
 
 // "" when the state passes (and the step becomes the last good one), else

@@ -8,8 +8,9 @@
 //   order_tiles_by_length(n, length, min_saving, order)  that order: each block's tile longest item first (GPU)
 //   parallel_for_upto(max_n, count, f), parallel_for_teams_upto(max_n, count, f)  the same for i in [0, *count),
 //                               the count in device memory (at most max_n): the host does not wait for it
-//   for_each_cell_by_colour(dims, periodic, done, epoch, f)  f(c, team) for a grid's cells in 27 colours (c modulo 3),
-//                               colour after colour as far as the cells' neighbourhoods overlap (one launch on the GPU)
+//   for_each_cell_by_colour(dims, periodic, done, epoch, f)  a team for each cell of a grid in 27 colours (c modulo
+//                               3), colour after colour as far as the cells' neighbourhoods overlap (one launch on
+//                               the GPU)
 //   select_into(n, pred, out, count)  the indices i in [0, n) with pred(i), in order, and their count in device memory
 //   reduce_over(n, f, init, op) op-reduction of f(i) over [0, n) (Thrust transform_reduce), read by the host
 //   reduce_into(n, f, init, op, out[, then])  the same into *out in device memory: the host does not wait (one
@@ -582,18 +583,19 @@ void select_into(std::size_t n, const Pred& pred, uint32_t* out, uint32_t* count
 // ---- the cells of a grid in 27 colours --------------------------------------------------------------------------
 // for_each_cell_by_colour(dims, periodic, done, epoch, f): one team per cell c = (x, y, z) of a grid of dims cells,
 // colour by colour, colour (x % 3) + 3 (y % 3) + 9 (z % 3) in increasing order and, within a colour, its cells x
-// fastest. f.busy(c, team) says whether c's team has work; it must be the same whenever it is asked (nothing the
-// teams write changes it). f(c, team) does the work, touching only particles of the cells within 1 of c, so two
-// teams of one colour (3 cells apart) share none, and each team sees its cells as every earlier colour left them
-// (the race-free merge of adaptivity.h).
+// fastest. turn = f.prepare(c, team) reads what no team changes (it may run before the earlier colours' teams have
+// finished) and says whether the cell has work (turn.busy); f(turn, team) does it, touching only particles of the
+// cells within 1 of c: two teams of one colour (3 cells apart) share none, and each team sees its cells as every
+// earlier colour left them (the race-free merge of adaptivity.h).
 // CPU: the colours one after the other, a parallel loop over each colour's cells.
 // GPU: one launch instead of one per colour. The warps take the cells in that order, and a busy cell's team waits
 // only for the teams of earlier colours within 2 cells, whose cells overlap its own: each team, busy or not, marks
-// its cell done (done[cell] = epoch, a release store) once it has finished, and the waiting team reads the marks with
-// acquire loads. Every team thus starts from the state the colour-by-colour walk gives it, and writes what that walk
+// its cell done (done[cell] = epoch, a release store) once it has finished, and a waiting team reads the marks with
+// acquire loads. Every team thus starts from the state the colour-by-colour walk gives it and writes what that walk
 // writes. No team waits for a later one, and the grid holds no more warps than the GPU runs at once (each takes its
-// cells in increasing order), so the walk always moves on. done: one entry per cell, never equal to epoch before
-// the call (a new epoch per call).
+// cells in increasing order), so the walk always moves on. done: one entry per cell, never equal to a new epoch
+// before the call. (Listing the busy cells first, so that the warps skip the others, made the walk slower: the
+// listing's launches cost more than the idle cells' marks.)
 struct CellColours {
     int dims[3];
     bool periodic[3];
@@ -606,12 +608,17 @@ struct CellColours {
             first[k + 1] = first[k] + uint32_t(count(dims[0], k % 3)) * uint32_t(count(dims[1], k / 3 % 3)) *
                                           uint32_t(count(dims[2], k / 9));
     }
-    // Colour k's cell number local (x fastest) as coordinates.
-    PBF_HD void cell(int k, uint32_t local, int c[3]) const {
+    static PBF_HD int colour(const int c[3]) { return c[0] % 3 + 3 * (c[1] % 3) + 9 * (c[2] % 3); }
+    // Item t (colour-major) as its colour and cell coordinates (x fastest within the colour).
+    PBF_HD int cell(uint32_t t, int c[3]) const {
+        int k = 0;
+        while (t >= first[k + 1]) ++k;
+        const uint32_t local = t - first[k];
         const uint32_t nx = uint32_t(count(dims[0], k % 3)), ny = uint32_t(count(dims[1], k / 3 % 3));
         c[0] = k % 3 + 3 * int(local % nx);
         c[1] = k / 3 % 3 + 3 * int(local / nx % ny);
         c[2] = k / 9 + 3 * int(local / (nx * ny));
+        return k;
     }
     PBF_HD uint32_t index(const int c[3]) const {
         return uint32_t(c[0]) + uint32_t(dims[0]) * (uint32_t(c[1]) + uint32_t(dims[1]) * uint32_t(c[2]));
@@ -625,11 +632,10 @@ __global__ void __launch_bounds__(128) colour_walk_kernel(CellColours w, uint32_
     const uint32_t lane = threadIdx.x % WarpTeam::kSize, warps = gridDim.x * (blockDim.x / WarpTeam::kSize);
     const WarpTeam team{lane};
     for (uint32_t t = (blockIdx.x * blockDim.x + threadIdx.x) / WarpTeam::kSize; t < w.first[27]; t += warps) {
-        int k = 0;
-        while (t >= w.first[k + 1]) ++k;
         int c[3];
-        w.cell(k, t - w.first[k], c);
-        if (f.busy(c, team)) {
+        const int k = w.cell(t, c);
+        const auto turn = f.prepare(c, team);
+        if (turn.busy) {
             // The cells within 2 of c (lane l: offsets l, l + 32, .. of the 5 x 5 x 5) of an earlier colour.
             for (uint32_t o = lane; o < 125u; o += 32u) {
                 int n[3] = {c[0] + int(o % 5u) - 2, c[1] + int(o / 5u % 5u) - 2, c[2] + int(o / 25u) - 2};
@@ -638,53 +644,52 @@ __global__ void __launch_bounds__(128) colour_walk_kernel(CellColours w, uint32_
                     if (w.periodic[a]) n[a] = (n[a] + 2 * w.dims[a]) % w.dims[a];
                     else inside = inside && n[a] >= 0 && n[a] < w.dims[a];
                 }
-                if (!inside || (n[0] % 3) + 3 * (n[1] % 3) + 9 * (n[2] % 3) >= k) continue;
+                if (!inside || CellColours::colour(n) >= k) continue;
                 cuda::atomic_ref<uint32_t, cuda::thread_scope_device> mark(done[w.index(n)]);
-                while (mark.load(cuda::memory_order_acquire) != epoch) __nanosleep(64);
+                while (mark.load(cuda::memory_order_acquire) != epoch) __nanosleep(32);
             }
             __syncwarp();
-            f(c, team);
+            f(turn, team);
         }
         __syncwarp();
         __threadfence();   // each lane's writes before the mark
         __syncwarp();
-        if (lane == 0) cuda::atomic_ref<uint32_t, cuda::thread_scope_device>(done[w.index(c)]).store(epoch, cuda::memory_order_release);
+        if (lane == 0)
+            cuda::atomic_ref<uint32_t, cuda::thread_scope_device>(done[w.index(c)]).store(epoch, cuda::memory_order_release);
     }
 }
 
 template <class F>
 void for_each_cell_by_colour(const int dims[3], const bool periodic[3], uint32_t* done, uint32_t epoch, const F& f) {
     const CellColours w(dims, periodic);
-    if (w.first[27] == 0) return;
+    const uint32_t cells = w.first[27];
+    if (cells == 0) return;
     // No more blocks than run at once (the walk's progress rests on it; see above).
-    static int resident = 0;
-    if (resident == 0) {
-        int device = 0, sms = 0, per_sm = 0;
-        cudaGetDevice(&device);
-        cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device);
-        cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, colour_walk_kernel<F>, 128, 0);
-        resident = std::max(1, sms * per_sm);
-    }
-    const std::size_t wanted = (std::size_t(w.first[27]) * WarpTeam::kSize + 127) / 128;
-    launch("colour walk", colour_walk_kernel<F>, unsigned(std::min<std::size_t>(wanted, std::size_t(resident))), 128u,
-           w, done, epoch, f);
+    int device = 0, sms = 0, per_sm = 0;
+    cudaGetDevice(&device);
+    cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device);
+    cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, colour_walk_kernel<F>, 128, 0);
+    const std::size_t resident = std::size_t(std::max(1, sms * per_sm));
+    const std::size_t wanted = (std::size_t(cells) * WarpTeam::kSize + 127) / 128;
+    launch("colour walk", colour_walk_kernel<F>, unsigned(std::min(wanted, resident)), 128u, w, done, epoch, f);
 }
 #else
 template <class F>
 struct ColourTeams {
     CellColours w;
-    int k;
+    uint32_t first;
     F f;
     void operator()(uint32_t t) const {
         int c[3];
-        w.cell(k, t, c);
-        if (f.busy(c, SerialTeam{})) f(c, SerialTeam{});
+        w.cell(first + t, c);
+        const auto turn = f.prepare(c, SerialTeam{});
+        if (turn.busy) f(turn, SerialTeam{});
     }
 };
 template <class F>
 void for_each_cell_by_colour(const int dims[3], const bool periodic[3], uint32_t*, uint32_t, const F& f) {
     const CellColours w(dims, periodic);
-    for (int k = 0; k < 27; ++k) parallel_for(w.first[k + 1] - w.first[k], ColourTeams<F>{w, k, f});
+    for (int k = 0; k < 27; ++k) parallel_for(w.first[k + 1] - w.first[k], ColourTeams<F>{w, w.first[k], f});
 }
 #endif
 

@@ -102,7 +102,10 @@ struct SolverData {
     dvec<uint8_t> flags;                     // adaptive runs: AdaptFlag bits
     dvec<float> energy;                      // adaptive runs: shape energy E (eq. 20)
     dvec<uint32_t> split_count, split_slot, split_candidates, merge_partner;
-    dvec<AdaptCounts> adapt_counts;          // adaptive runs: one splitting and merging's counts (one), in device memory
+    // The step adapted, and its particle count waits for the counts in the step's sums (adaptivity_launch.h:
+    // finish_adapt): adapt_from particles before, and until then n is the compaction's bound.
+    bool adapt_waiting = false;
+    std::size_t adapt_from = 0;
     dvec<uint32_t> colour_done;              // adaptive runs: per cell, the merge walk's mark (launch.h: for_each_cell_by_colour)
     uint32_t colour_epoch = 0;               // the last merge walk's mark
     // Boundary particles (walls), sorted by cell once: they never move. Each cell's boundary candidates, gathered
@@ -182,7 +185,6 @@ struct SolverData {
             flags.resize(cap); energy.resize(cap); split_count.resize(cap); split_slot.resize(cap);
             split_candidates.resize(cap);
             merge_partner.resize(cap);
-            adapt_counts.resize(1);
         }
     }
 
@@ -191,7 +193,8 @@ struct SolverData {
     // as many arrays as there are free buffers of their type to gather into (GatherParticles): the scratch arrays
     // and those the step rewrites before it reads them (omega, lambda, the conjugate gradients' r, p, q, diag);
     // each gathered array is swapped with its buffer, which is then free again. Most scenes take one pass.
-    void permute_all(bool with_pred) {
+    // count (device memory, nullptr: n): the number of entries to permute, at most n.
+    void permute_all(bool with_pred, const uint32_t* count = nullptr) {
         Few<dvec<Float4>*, 3> f4;
         f4.push_back(&pos);
         f4.push_back(&vel);
@@ -237,7 +240,8 @@ struct SolverData {
                 g.u_src = raw(id);
                 g.u_dst = raw(uint_tmp);
             }
-            parallel_for(n, g);
+            if (count) parallel_for_upto(n, count, g);
+            else parallel_for(n, g);
             for (std::size_t k = 0; k < swaps4.size; ++k) swaps4[k].first->swap(*swaps4[k].second);
             for (std::size_t k = 0; k < swaps1.size; ++k) swaps1[k].first->swap(*swaps1[k].second);
             if (!id_done) id.swap(uint_tmp);

@@ -157,6 +157,7 @@ public:
             const bool checked = d_.step % d_.p.check_every == 0;
             if (checked && d_.n > 0) reduce_checks_into(d_, &raw(d_.step_sums)->checks);
             const StepSums sums = d_.step_sums[0];
+            finish_adapt(d_, sums.adapt);   // the particle count after the step's splitting and merging, if any
             d_.clock.collect(d_.totals);
 #ifdef PBF_BACKEND_CUDA
             cudaError_t err = cudaGetLastError();
@@ -179,6 +180,8 @@ public:
         thrust::copy(exec(), d_.pos.begin(), d_.pos.begin() + d_.n, d_.pred.begin());
         build_neighbor_grid(d_);
         adapt(d_);
+        const StepSums sums = d_.step_sums[0];
+        finish_adapt(d_, sums.adapt);
         d_.clock.collect(d_.totals);
     }
 
