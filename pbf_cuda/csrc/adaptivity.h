@@ -268,12 +268,10 @@ struct KeptAfterMerges {
 };
 
 // Each merge candidate's partner: the closest same-level candidate within h_l (ties: lower index).
-// Read-only and fully parallel; the passes below only consume the pairs.
-// Where the step's lists are attached (SolverData::fluid_ranges_with_narrowed_lists) and hold particle i's whole row,
-// its row is read instead of the 27 cells: narrowed at the final x*, it holds every pair within the pair's support
-// there, and a same-level pair's support is h_l. The distances are those of the cell search (the same expression on
-// the same committed positions), and the choice does not depend on the visiting order, so the partner is the cell
-// search's, unless a distance rounds across h_l between x* and its wrapped copy.
+// Read-only and fully parallel; the merge walk only consumes the pairs. (Reading the step's lists, narrowed to the
+// pairs within support at x*, instead of the 27 cells changed the partners where a pair had closed in by more than
+// the lists' skin during the step or straddled the periodic wrap: the states left the cell search's after 350-450 of
+// Table 1's 500 steps of `growing`, so the partners keep the cell search.)
 struct FindMergePartners {
     GridGeometry grid;
     CellRanges fluid;
@@ -283,28 +281,13 @@ struct FindMergePartners {
     PBF_HD void operator()(uint32_t i) const {
         uint32_t best = 0xffffffffu;
         if (flags[i] & kMergeCandidate) {
-            const Float4 pi = fluid.pos[i];
-            const Vec3 xi = xyz(pi);
-            const float hl = radii.h[radii.level_of_mass(pi.w)];
+            Float4 pi = fluid.pos[i];
+            float hl = radii.h[radii.level_of_mass(pi.w)];
             float best_r2 = hl * hl;
-            auto consider = [&](uint32_t j, float r2) {
+            for_each_neighbor(grid, fluid, xyz(pi), hl, [&](uint32_t j, Vec3, float r2) {
                 if (j == i || !(flags[j] & kMergeCandidate) || fluid.pos[j].w != pi.w) return;
                 if (r2 < best_r2 || (r2 == best_r2 && j < best)) { best = j; best_r2 = r2; }
-            };
-            if (fluid.listed(i)) {
-                const float r2max = hl * hl;
-                const uint32_t count = fluid.nbr_count[i];
-                for (uint32_t k = 0; k < count; ++k) {
-                    const uint32_t j = fluid.candidate(i, k);
-                    if (!(flags[j] & kMergeCandidate)) continue;
-                    const Float4 pj = fluid.pos[j];
-                    const Vec3 r = min_image(grid, Vec3{xi.x - pj.x, xi.y - pj.y, xi.z - pj.z});
-                    const float r2 = dot(r, r);
-                    if (r2 < r2max) consider(j, r2);
-                }
-            } else {
-                for_each_neighbor(grid, fluid, xi, hl, [&](uint32_t j, Vec3, float r2) { consider(j, r2); });
-            }
+            });
         }
         partner[i] = best;
     }

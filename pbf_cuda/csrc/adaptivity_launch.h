@@ -40,12 +40,10 @@ inline AdaptParams make_adapt_params(const Params& p, const LevelRadii& radii) {
 }
 
 // Shape energy and split / merge candidates, then each merge candidate's partner (read-only passes).
-// The partners' search reads the step's narrowed lists where they are kept (FindMergePartners).
-inline void mark_candidates(SolverData& d) {
+inline void mark_candidates(SolverData& d, const CellRanges& fl) {
     parallel_for(d.n, MarkCandidates{d.grid, d.ap, d.atm, d.radii, raw(d.pos), raw(d.temperature), raw(d.vapor), raw(d.cloud),
                                      raw(d.energy), raw(d.flags)});
-    parallel_for(d.n, FindMergePartners{d.grid, d.fluid_ranges_with_narrowed_lists(d.pos), d.radii, raw(d.flags),
-                                        raw(d.merge_partner)});
+    parallel_for(d.n, FindMergePartners{d.grid, fl, d.radii, raw(d.flags), raw(d.merge_partner)});
 }
 
 // The race-free parallel merge (MergeCell): the cells in 27 colours, colour after colour where their neighbourhoods
@@ -92,7 +90,7 @@ inline void adapt(SolverData& d) {
     AdaptCounts* counts = &raw(d.step_sums)->adapt;
     d.clock.begin(kPhaseMerging);
     CellRanges fl = d.fluid_ranges(d.pos);
-    mark_candidates(d);
+    mark_candidates(d, fl);
     d.clock.begin(kPhaseMergePasses);
     merge_pairs(d, fl);
     d.clock.end(kPhaseMergePasses);
@@ -109,7 +107,6 @@ inline void adapt(SolverData& d) {
     d.n = std::min(2 * d.n, d.capacity);
     select_into(d.n, KeptAfterMerges{raw(d.flags), counts}, raw(d.perm), &counts->alive);
     d.permute_all(false, &counts->alive);
-    d.lists_narrowed = false;   // renumbered, and grown by the splits
     d.clock.end(kPhaseCompaction);
     d.clock.end(kPhaseMerging);
 }

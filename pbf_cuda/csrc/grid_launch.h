@@ -253,7 +253,6 @@ inline void order_list_passes(SolverData& d) {
 template <class Policy, class PairSum>
 bool build_neighbor_lists(SolverData& d, const PairSum& pair_sum) {
     d.lists_ready = false;
-    d.lists_narrowed = false;
     if (!d.p.neighbor_list || d.lists_given_up || d.n == 0) return false;
     if (!fill_neighbor_rows<Policy>(d, pair_sum)) return false;
     const ListSizeOf count{raw(d.nbr_count)};

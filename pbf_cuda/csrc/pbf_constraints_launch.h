@@ -276,12 +276,10 @@ inline RowNarrowing list_narrowing(SolverData& d) {
     return RowNarrowing{raw(d.nbr_count), raw(d.nbr_index), d.nbr_row, d.nbr_slot};
 }
 
-// Returns whether the lists were narrowed.
 template <class Policy>
-bool narrow_neighbor_lists(SolverData& d) {
-    if (!d.lists_ready || passes_after_xsph(d) < 3) return false;
+void narrow_neighbor_lists(SolverData& d) {
+    if (!d.lists_ready || passes_after_xsph(d) < 3) return;
     parallel_for(d.n, NarrowNeighbors<Policy>{d.grid, d.fluid_ranges(d.pred), d.radii, d.p.h0, list_narrowing(d)});
-    return true;
 }
 
 // v = (x* - x) / dt: the position projection's velocity (the velocity projection keeps v).

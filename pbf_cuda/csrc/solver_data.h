@@ -79,10 +79,6 @@ struct SolverData {
     dvec<uint32_t> pass_order;            // GPU: the list passes' thread order, tiles by row length (launch.h)
     bool pass_order_ready = false;
     bool lists_ready = false;             // the lists belong to this step's sorted particles
-    // The lists hold exactly the pairs within their support at this step's final x* (narrowed after the density
-    // iterations, pbf_constraints_launch.h), and the particles are still numbered as when they were built: true from
-    // the narrowing to the next build or renumbering, so the splitting and merging after the step may read them.
-    bool lists_narrowed = false;
     bool list_size_pending = false;       // their size is in this step's sums (grid_launch.h: take_list_size)
     bool list_width_settled = false;      // the run's first build has set the width (grid_launch.h)
     bool lists_given_up = false;          // more than 2^32 - 1 entries, or no memory (grid_launch.h)
@@ -128,22 +124,14 @@ struct SolverData {
         CellRanges r = p.adaptive ? CellRanges{raw(positions), raw(cell_start), raw(cell_end), raw(sub_start),
                                                raw(sub_end), raw(sub_radius), raw(cell_radius), raw(keys)}
                                   : CellRanges{raw(positions), raw(cell_start), raw(cell_end)};
-        if (lists_ready) attach_lists(r);
+        if (lists_ready) {
+            r.nbr_count = raw(nbr_count);
+            r.nbr_index = raw(nbr_index);
+            r.nbr_row = nbr_row;
+            r.nbr_slot = nbr_slot;
+            r.nbr_width = nbr_width;
+        }
         return r;
-    }
-    // The same with the narrowed lists after the step, where they are kept (lists_narrowed): the pairs within their
-    // support at the committed positions, which are the final x* wrapped (the merge partners' search, adaptivity.h).
-    CellRanges fluid_ranges_with_narrowed_lists(const dvec<Float4>& positions) const {
-        CellRanges r = fluid_ranges(positions);
-        if (lists_narrowed) attach_lists(r);
-        return r;
-    }
-    void attach_lists(CellRanges& r) const {
-        r.nbr_count = raw(nbr_count);
-        r.nbr_index = raw(nbr_index);
-        r.nbr_row = nbr_row;
-        r.nbr_slot = nbr_slot;
-        r.nbr_width = nbr_width;
     }
     // The order in which the list passes' threads take the particles (nullptr: index order).
     const uint32_t* list_pass_order() const { return lists_ready && pass_order_ready ? raw(pass_order) : nullptr; }

@@ -70,7 +70,7 @@ public:
         // XSPH, viscosity and the vorticity at the final x* (its confinement rides the smoothing pass where one runs);
         // on the same pairs: the lists narrowed to them, the smoothing limiter's weight sums, the projection's warm start
         const XsphRiders taken = viscosity_vorticity<Policy>(d, limiter_weight_sums<Policy>(d), walls);
-        d.lists_narrowed = taken.narrowed || narrow_neighbor_lists<Policy>(d);   // x* is final: the pairs within support
+        if (!taken.narrowed) narrow_neighbor_lists<Policy>(d);   // x* is final: the lists keep the pairs within support
         d.clock.end(kPhaseSolver);
         d.clock.end(kPhasePBF);
 
@@ -100,7 +100,6 @@ public:
                    const float* vapor, const float* cloud, const float* mass, const uint32_t* id) override {
         SolverData& d = d_;
         d.end_budget_is_next_start = false;
-        d.lists_narrowed = false;
         std::size_t cap = std::max<std::size_t>(n, d.p.adaptive ? d.p.capacity : n);
         if (cap > 0xfffffff0u) throw std::length_error("particle capacity exceeds 2^32");
         d.capacity = cap;
@@ -176,7 +175,6 @@ public:
     void adapt_now() override {
         if (!d_.p.adaptive) throw std::invalid_argument("adapt_now: the scene is not adaptive");
         d_.end_budget_is_next_start = false;
-        d_.lists_narrowed = false;   // the sort below renumbers the particles
         thrust::copy(exec(), d_.pos.begin(), d_.pos.begin() + d_.n, d_.pred.begin());
         build_neighbor_grid(d_);
         adapt(d_);
@@ -193,7 +191,6 @@ public:
     ArrayView view(const std::string& name) override {
         SolverData& d = d_;
         d.end_budget_is_next_start = false;   // the caller may write through the view
-        d.lists_narrowed = false;
         ArrayView v;
 #ifdef PBF_BACKEND_CUDA
         v.on_device = true;
