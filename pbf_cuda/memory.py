@@ -23,7 +23,8 @@ __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memor
 FLOAT4, FLOAT, UINT = 16, 4, 4
 SORT_SCRATCH_BYTES = 1           # the radix sort's own scratch (CUB's digit histograms and look-back tiles, under
                                  # a byte per particle); its second buffers are uint_tmp and perm_alt
-ADAPTIVE_BYTES_PER_SLOT = 64     # flags, shape energy, split/merge bookkeeping, with room for the sub-cells
+ADAPTIVE_BYTES_PER_SLOT = 64     # flags, shape energy, split/merge bookkeeping, with room for the sub-cells and
+                                 # the merge walk's mark per cell (a cell holds several slots)
 BYTES_PER_BOUNDARY = 256         # float4 position, three floats, and the walls' table: each boundary particle
                                  # copied (float4) into the segments of the 11-14 cells that reach it
                                  # (stats()["wall_candidates"]: growing, dam_break, cycling)

@@ -52,9 +52,10 @@ inline void mark_candidates(SolverData& d, const CellRanges& fl) {
 inline void merge_pairs(SolverData& d, const CellRanges& fl) {
     const bool thermo = d.p.thermodynamics;
     d.colour_epoch += 1;
-    for_each_cell_by_colour(d.grid.dims, d.grid.periodic, raw(d.colour_done), d.colour_epoch, MergeCell{d.grid, fl, d.ap, d.radii, raw(d.merge_partner), raw(d.flags), raw(d.pos),
-                                      raw(d.vel), thermo ? raw(d.temperature) : nullptr,
-                                      thermo ? raw(d.vapor) : nullptr, thermo ? raw(d.cloud) : nullptr});
+    const MergeCell merge{d.grid, fl, d.ap, d.radii, raw(d.merge_partner), raw(d.flags), raw(d.pos), raw(d.vel),
+                          thermo ? raw(d.temperature) : nullptr, thermo ? raw(d.vapor) : nullptr,
+                          thermo ? raw(d.cloud) : nullptr};
+    for_each_cell_by_colour(d.grid.dims, d.grid.periodic, raw(d.colour_done), d.colour_epoch, merge);
 }
 
 // Gather the split candidates (index order), decide with one team each, then give the winners slots while the

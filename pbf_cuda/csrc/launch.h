@@ -24,7 +24,8 @@
 // synchronises the stream after every algorithm and allocates (cudaMalloc / cudaFree, both synchronising) the
 // temporary storage of each one, so a step of ~100 launches waited for the GPU ~100 times. Only what the host
 // must read waits now: the neighbour lists' size, the step's sums (one record, read once after the step with
-// the timers; reduce_into writes a sum to device memory without a wait), and copy_if's counts in adaptive runs. What made small scenes slow
+// the timers; reduce_into writes a sum to device memory without a wait); the adaptive step's counts stay in device
+// memory too (select_into, parallel_for_upto) and come with the step's sums. What made small scenes slow
 // was mostly occupancy, not these waits (parallel_for below; docs/benchmarks.md, "Launch overhead").
 #pragma once
 #ifndef PBF_BACKEND_NS
