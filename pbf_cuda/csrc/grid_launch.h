@@ -226,10 +226,7 @@ constexpr uint32_t kRowOrderMinSaving = 16;
 inline void order_list_passes(SolverData& d) {
     d.pass_order_ready = false;
 #ifdef PBF_BACKEND_CUDA
-    static const bool enabled = [] {
-        const char* env = std::getenv("CLOUDPBF_ROW_ORDER");
-        return !(env && std::string(env) == "0");
-    }();
+    static const bool enabled = !switched_off_in_environment("CLOUDPBF_ROW_ORDER");
     if (enabled && d.n > 0) {
         order_tiles_by_length(d.n, raw(d.nbr_count), kRowOrderMinSaving, raw(d.pass_order));
         d.pass_order_ready = true;

@@ -157,12 +157,15 @@ __device__ __forceinline__ void wait_for_prior_grids() {
 #endif
 }
 
+// Whether the environment switches a GPU option off for comparisons: name=0 (the callers read it once per process).
+inline bool switched_off_in_environment(const char* name) {
+    const char* env = std::getenv(name);
+    return env && std::string(env) == "0";
+}
+
 // Whether launches on the current device may overlap their predecessor's drain (see above).
 inline bool programmatic_launch() {
-    static const bool enabled = [] {
-        const char* env = std::getenv("CLOUDPBF_PDL");
-        return !(env && std::string(env) == "0");
-    }();
+    static const bool enabled = !switched_off_in_environment("CLOUDPBF_PDL");
     constexpr int kDevices = 64;
     static int capability[kDevices] = {};   // 0: not asked yet; else the major version + 1 (-1: no answer)
     if (!enabled) return false;
