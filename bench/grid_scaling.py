@@ -96,7 +96,7 @@ def append_rows(path: Path, rows) -> None:
 
 
 def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
-                     out="reports/gpu/data/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
+                     out="reports/latest/data/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
     """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
     from pbf_cuda.scene import load_scene
     if steps < 1:
@@ -127,7 +127,7 @@ def grid_scaling_command(
     devices: Annotated[str, typer.Option(help="all, cpu, gpu or cpu,gpu")] = "all",
     dtypes: Annotated[Optional[str], typer.Option(
         help="float32 and/or float64, comma-separated (default: float64 on the CPU, float32 on the GPU)")] = None,
-    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/gpu/data/grid_scaling.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to append to")] = Path("reports/latest/data/grid_scaling.csv"),
     commit: Annotated[Optional[str], typer.Option(help="commit to record (default: git rev-parse --short HEAD)")] = None,
 ) -> None:
     """ms per grid-baseline step at n^3 cells on the CPU and the GPU (appends to one CSV)."""

@@ -83,7 +83,7 @@ def adaptive_cost_command(
     steps: Annotated[int, typer.Option(min=3, max=100_000, help="steps per run")] = 500,
     scenes: Annotated[str, typer.Option(help="adaptive scenes, comma-separated")] = "growing_adaptive,cycling_adaptive",
     backend: BackendOpt = Backend.auto,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/adaptive_cost.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/adaptive_cost.csv"),
     runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """Split and merge ms per step of the adaptive scenes on a given level-0 spacing (GPU benchmark)."""

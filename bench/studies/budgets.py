@@ -105,7 +105,7 @@ def budgets_command(
     every: Annotated[int, typer.Option(min=1, max=1_000_000, help="a budget row every this many steps")] = 10,
     seed: Annotated[int, typer.Option(min=0, help="random seed")] = 0,
     backend: BackendOpt = Backend.cpu,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/budgets.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/budgets.csv"),
     plot: Annotated[Optional[Path], typer.Option(help="also draw the budgets as a PNG here")] = None,
     quiet: QuietOpt = False,
 ) -> None:

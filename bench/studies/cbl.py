@@ -201,7 +201,7 @@ def cbl_command(
     seed: Annotated[int, typer.Option(min=0, help="random seed")] = 0,
     backend: BackendOpt = Backend.cpu,
     out: Annotated[Path, typer.Option("--out", help="CSV to write (or to read with --from-csv)")] = Path(
-        "reports/gpu/data/cbl_profiles.csv"),
+        "reports/latest/data/cbl_profiles.csv"),
     plot: Annotated[Optional[Path], typer.Option(help="also draw the profiles as a PNG here")] = None,
     from_csv: Annotated[bool, typer.Option("--from-csv", help="draw the existing --out CSV without running")] = False,
     quiet: QuietOpt = False,

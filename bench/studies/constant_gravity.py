@@ -83,7 +83,7 @@ def constant_gravity_command(
     particles: Annotated[Optional[int], typer.Option(min=100, max=10**9, help="resample the scenes to about this many")] = None,
     steps: Annotated[Optional[int], typer.Option(min=1, max=10**7, help="steps (default: the scenes' 500)")] = None,
     backend: BackendOpt = Backend.auto,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/constant_gravity.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/constant_gravity.csv"),
     runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """`growing` with a constant gravity added, beside the shipped `cycling` (README: Deviations)."""

@@ -176,7 +176,7 @@ def peers_command(
     splish_python: Annotated[Optional[str], typer.Option(help="a Python with pysplishsplash 2.19.0 "
                                                                  "(default: this one)")] = None,
     spacing: Annotated[float, typer.Option(min=0.01, max=0.2, help="cloudpbf's particle spacing, m")] = 0.022,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/cpu_peer.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/cpu_peer.csv"),
 ) -> None:
     """SPlisHSPlasH's PBF dam break against cloudpbf's on the same geometry (cpu_peer.csv)."""
     from bench import runs

@@ -141,7 +141,7 @@ def pbf_scaling_command(
     iterations: Annotated[int, typer.Option(min=1, max=200, help="PBF solver iterations")] = 4,
     scene: Annotated[str, typer.Option(help="scene name or path")] = "growing",
     backend: BackendOpt = Backend.auto,
-    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/gpu/data/pbf_scaling.csv"),
+    out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/pbf_scaling.csv"),
     runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """ms per particle step at the given sizes, one CSV (the GPU benchmark form of `scaling`)."""
