@@ -3,6 +3,7 @@
 The command line needs the ``harness`` extra (typer, pandas, dask, ...); some commands need more
 (``grid`` for the grid baseline, ``viz`` for renders and VTK exports, ``io`` for NetCDF/zarr).  A
 missing one gives a one-line message naming the extra instead of a traceback (exit code 1).
+``cloudpbf --version`` answers before anything else is imported, so it works with no extra installed.
 """
 from __future__ import annotations
 
@@ -30,7 +31,21 @@ def missing_extra_message(exc: ModuleNotFoundError) -> str | None:
             f"pip install -e \".[{extra}]\")")
 
 
+def installed_version() -> str:
+    """The distribution's version from its metadata (no import of the solver or the harness)."""
+    import importlib.metadata
+    try:
+        return importlib.metadata.version("cloudpbf")
+    except importlib.metadata.PackageNotFoundError:
+        from pbf_cuda._version import version   # a source tree that was never installed
+        return version()
+
+
 def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else list(argv)
+    if args in (["--version"], ["-V"]):
+        print(f"cloudpbf {installed_version()}")
+        return 0
     try:
         from bench.cli import main as cli_main
         return cli_main(argv)

@@ -32,6 +32,15 @@ def test_version_is_the_package_metadata():
     assert res.output.strip() == f"cloudpbf {importlib.metadata.version('cloudpbf')}"
 
 
+def test_version_needs_no_extra(monkeypatch, capsys):
+    """The console script answers --version before importing the harness (typer, pandas, ...)."""
+    from bench import console
+    for name in ("bench.cli", "typer", "pandas"):
+        monkeypatch.setitem(sys.modules, name, None)      # importing any of them now fails
+    assert console.main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"cloudpbf {importlib.metadata.version('cloudpbf')}"
+
+
 @pytest.mark.parametrize("command", ["run", "export", "adaptive-cost", "constant-gravity", "pbf-scaling",
                                      "grid-scaling", "demo", "scaling", "budgets", "cbl"])
 def test_help_has_no_escaped_brackets(command):
