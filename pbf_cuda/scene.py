@@ -14,6 +14,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -34,6 +35,8 @@ __all__ = [
     "scene_from_dict",
     "SCENE_DIR",
     "list_scenes",
+    "sanitize_name",
+    "NAME_PATTERN",
 ]
 
 SCENE_DIR = Path(__file__).resolve().parent / "scenes"        # the shipped scenes (package data)
@@ -52,7 +55,8 @@ class SceneError(ValueError):
 
 MAX_SCENE_BYTES = 1 << 20        # a scene file larger than this is refused (1 MiB)
 MAX_EXTENDS_DEPTH = 16           # scene.extends chains longer than this are refused
-MAX_NAME_CHARS = 200             # scene.name
+MAX_NAME_CHARS = 64              # scene.name
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]{1,64}")   # scene.name: letters, digits, _ . - (file names are made from it)
 MAX_DESCRIPTION_CHARS = 10_000   # scene.description
 SHORT_VALUE_CHARS = 60           # values are shortened to this in error messages
 
@@ -510,8 +514,9 @@ def scene_from_dict(data: dict, source: str = "scene") -> Scene:
     if extra:
         raise SceneError(f"{source}: unknown field scene.{short_text(extra[0])}; known fields: name, description, extends")
     name = head.get("name", _default_name(source))
-    if not isinstance(name, str) or not 1 <= len(name) <= MAX_NAME_CHARS:
-        raise SceneError(f"{source}: scene.name = {short(name)}: expected a text of 1 to {MAX_NAME_CHARS} characters")
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name) or name in (".", ".."):
+        raise SceneError(f"{source}: scene.name = {short(name)}: expected 1 to {MAX_NAME_CHARS} characters, "
+                         "each a letter, a digit or one of _ . - (no spaces, slashes or other symbols)")
     description = head.get("description", "")
     if not isinstance(description, str) or len(description) > MAX_DESCRIPTION_CHARS:
         raise SceneError(f"{source}: scene.description = {short(description)}: expected a text of at most "
@@ -525,9 +530,17 @@ def scene_from_dict(data: dict, source: str = "scene") -> Scene:
 
 
 def _default_name(source: str) -> str:
-    """A scene without scene.name is named after its file (the source's stem)."""
+    """A scene without scene.name is named after its file (the source's stem), every character outside
+    letters, digits and _ . - replaced by _ (a valid scene.name)."""
     stem = Path(str(source)).stem if str(source).endswith(".toml") else str(source)
-    return stem[:MAX_NAME_CHARS] or "unnamed"
+    return sanitize_name(stem)
+
+
+def sanitize_name(text: str) -> str:
+    """`text` as a valid scene.name: runs of characters outside letters, digits and _ . - become one _,
+    leading dots are dropped, at most MAX_NAME_CHARS characters; "unnamed" when nothing is left."""
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(text)).lstrip(".")[:MAX_NAME_CHARS]
+    return name if name and name not in (".", "..") else "unnamed"
 
 
 def list_scenes() -> list[str]:
@@ -669,7 +682,7 @@ def load_scene(name_or_path: str | Path, **overrides) -> Scene:
         data = read_scene_dict(path)
         scene = scene_from_dict(data, source=str(path) if path.parent != SCENE_DIR else path.stem)
         if "name" not in (data.get("scene") or {}):
-            scene.name = path.stem[:MAX_NAME_CHARS] or "unnamed"
+            scene.name = sanitize_name(path.stem)
         return scene.replace(**overrides) if overrides else scene
     except SceneError:
         raise
