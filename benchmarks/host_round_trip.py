@@ -4,7 +4,7 @@ followed by a 4-byte read to the host, and each followed by a device synchronisa
     python3 benchmarks/host_round_trip.py [--reps 2000]
 
 The adaptive step once read four counts back to the host (adaptivity_launch.h); each read leaves the GPU idle for
-the round trip, which this measures (README, "Speed of the step", change 16). Needs CuPy and a GPU.
+the round trip, which this measures (docs/performance.md, "Speed of the step", change 16). Needs CuPy and a GPU.
 """
 import argparse
 import sys

@@ -328,7 +328,7 @@ class GridSimulation:
             d["cloud_base"] = d["cloud_top"] = float("nan")
         d["cloud_fraction_volume"] = d["cloud_cells"] / self.n_cells
         d["dt"] = p.dt
-        # The particle solver's budget columns (same names, meanings and units; README "Budgets"):
+        # The particle solver's budget columns (same names, meanings and units; docs/physics.md, Budgets):
         # last step's warming per process and running totals (K), plus heat_numerical (model.BUDGET_TERMS).
         last = np.asarray(self._budget_last, dtype=np.float64) if self._budget_valid else np.zeros(len(BUDGET_TERMS))
         totals = np.asarray(self._budget_totals, dtype=np.float64)

@@ -138,11 +138,11 @@ class PBF:
     remove_column_drift: bool = _spec(True, doc="velocity projection in a box closed at the floor and the lid: remove "
                                       "the fluid's net vertical momentum after the projection (incompressible air there has "
                                       "none; a few CG iterations do not stop a drift of the whole column, which rarefies "
-                                      "heated air: README, Physics and numerics, Column drift)")
+                                      "heated air: docs/physics.md, Column drift)")
     remove_shift_drift: bool = _spec(False, doc="velocity projection in a box closed at the floor and the lid: remove "
                                      "the density solve's net vertical shift of the fluid after its iterations (the "
                                      "same rigid mode as the column drift, reached through positions; off by default, "
-                                     "README, Physics and numerics, Shift drift)")
+                                     "docs/physics.md, Shift drift)")
     shift_keeps_anomaly: bool = _spec(False, doc="velocity projection with an atmosphere: the density constraint's "
                                       "vertical shift of a particle moves its temperature along the environment's lapse "
                                       "rate, not the dry adiabat")
@@ -243,7 +243,7 @@ class Adaptive:
                                  "(W(r, h_i) + W(r, h_j)) / 2, support max(h_i, h_j) (the paper's); 'mean_radius': "
                                  "W(r, (h_i + h_j) / 2), support (h_i + h_j) / 2, so a coarse particle next to fine "
                                  "ones has fewer neighbours (both symmetric in i and j; 'mean_radius' is the less "
-                                 "tried: one of five seeds of the growing study blew up with it, README)")
+                                 "tried: one of five seeds of the growing study blew up with it, docs/performance.md)")
     lookahead_height: float = _spec(300.0, 0.0, 5000.0, "m", "rise dz of the 'lookahead' criterion")
     heating_time: float = _spec(60.0, 0.0, 1e6, "s", "tau of the 'heated' criterion: with the defaults a column "
                                                      "is fine where S_e tau > 0.45 K")

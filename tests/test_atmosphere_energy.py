@@ -1,5 +1,5 @@
 """An incompressible, energy-honest particle atmosphere: the velocity projection, the conservative
-smoothing and the per-step energy and heat budget (README: Physics and numerics).
+smoothing and the per-step energy and heat budget (docs/physics.md).
 
 Each test is a physical statement: an inviscid flow never gains kinetic energy, a viscous vortex decays at
 the rate its viscosity implies, a gravity wave keeps its energy and frequency, a heated closed box keeps its

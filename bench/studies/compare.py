@@ -31,7 +31,7 @@ from bench.studies.scales import scale_scene
 from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
 
 MODES = ("non-adaptive", "adaptive", "grid")
-# The energy and heat budget of both solvers (Simulation.stats(), GridSimulation.stats(); README "Budgets").
+# The energy and heat budget of both solvers (Simulation.stats(), GridSimulation.stats(); docs/physics.md, Budgets).
 BUDGET_COLUMNS = ("mass_centre_height", "kinetic_energy", "mean_temperature", "heat_source_total",
                   "heat_latent_total", "heat_adiabatic_total", "heat_smoothing_total", "heat_numerical_total",
                   "heat_relaxation_total", "water_relaxation_total", "water_rain_total")

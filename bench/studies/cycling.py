@@ -54,7 +54,7 @@ RENAMED = {"water_rain_total": "rain_total"}
 # four times the scene's (the forcing is integrated exactly, and N dt stays below 0.1).
 # tau = 600 s at this resolution (300 s, the scene file's, is chosen for the 33 m GPU scale; docs/cycling.md).
 # At 100 m spacing the density solve lifts the whole column off the heated floor unless its net vertical
-# shift is removed (pbf.remove_shift_drift; README, Shift drift): without it the adaptive twin's later
+# shift is removed (pbf.remove_shift_drift; docs/physics.md, Shift drift): without it the adaptive twin's later
 # days lose a third of their heat and it counts no cycle (docs/cycling.md, Measured at CPU scale).
 # adaptive.every = 1: the adaptive twin splits and merges every 8 s of model time, as at GPU scale (every fourth
 # step of 2 s; with every fourth step of 8 s here, the CPU twin cycled in 1 seed of 0-2, docs/cycling.md)

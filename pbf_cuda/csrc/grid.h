@@ -172,7 +172,7 @@ PBF_HD inline void for_each_wall_neighbor(const GridGeometry& g, const WallNeigh
 // r2 = |x_i - x_j|^2 < r2max (minimum image), in index order. One position at a time, one cell at a time: reading
 // four positions at a time, as the lists' passes do (kernel_policy.h: kListBatch), and visiting a row's consecutive
 // cells in one loop both made the lists' build no faster and every list pass slower (ApplyJT +9% and +8% in ncu,
-// H100; README, Speed of the step, change 9): this search is compiled into each list pass as its fallback.
+// H100; docs/performance.md, Speed of the step, change 9): this search is compiled into each list pass as its fallback.
 template <class F>
 PBF_HD inline void for_each_in_range(const GridGeometry& g, const Float4* pos, uint32_t b, uint32_t e,
                                      uint32_t stride, Vec3 q, float r2max, F&& f) {

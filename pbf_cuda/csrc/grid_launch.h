@@ -218,7 +218,7 @@ bool fill_neighbor_rows(SolverData& d, const PairSum& pair_sum) {
 
 // The list passes' thread order (launch.h: order_tiles_by_length) from the rows' lengths as built: a tile is
 // permuted where that shortens its four warps by at least kRowOrderMinSaving candidates (measured on an H100 against
-// 8 and 24: as fast on the adaptive scenes, and 8 slowed the 1M-particle `growing`; README, "Speed of the step",
+// 8 and 24: as fast on the adaptive scenes, and 8 slowed the 1M-particle `growing`; docs/performance.md, "Speed of the step",
 // change 15). The rows narrowed after the density iterations keep this order (ordered again by their narrowed
 // lengths, the passes after were no faster). CLOUDPBF_ROW_ORDER=0 in the environment keeps the index order (for
 // comparisons); the CPU backend's threads walk chunks of particles and keep it always.

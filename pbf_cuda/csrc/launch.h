@@ -147,7 +147,7 @@ inline auto exec() { return thrust::device; }
 // until the grids before it have completed and their writes are visible, so it reads exactly what it read under
 // full serialisation: the results are the same to the bit. No kernel signals its dependants early
 // (griddepcontrol.launch_dependents): tried at each kernel's start, the next kernel's blocks then sat on the SMs
-// beside the running ones and made the solver phase of the 100k-particle steps 6-16% slower (README, "Speed of the
+// beside the running ones and made the solver phase of the 100k-particle steps 6-16% slower (docs/performance.md, "Speed of the
 // step", change 10).
 // Kernels that Thrust launches (sorts, scans) keep the full serialisation. Older GPUs launch as before.
 // CLOUDPBF_PDL=0 in the environment switches it off (read once per process), for comparisons.
@@ -331,7 +331,7 @@ constexpr unsigned kReduceThreads = 256;
 constexpr unsigned kReduceBlocks = 1024;
 // Items per thread the number of blocks aims at (up to kReduceBlocks): one item per thread (blocks = n / 256) made
 // every block's tree and every block's turn at the counter cost more than its items; sixteen left too few threads
-// to keep the loads in flight. Measured on an H100 (README, "Speed of the step", change 15): 4 against 1, the same
+// to keep the loads in flight. Measured on an H100 (docs/performance.md, "Speed of the step", change 15): 4 against 1, the same
 // states, 0.02 ms less per step at 483k particles and 0.01 ms at 1M; 16 was slower than 1.
 constexpr unsigned kReduceItemsPerThread = 4;
 __device__ unsigned int reduce_blocks_done = 0;

@@ -515,7 +515,7 @@ struct VorticityConfinement {
 // divergence is zero except in the layers next to the floor and the lid, and a few conjugate-gradient
 // iterations do not carry the column-high pressure that stops it. What the projection leaves of it (the
 // horizontal mean of eq. 6's buoyancy, the walls' reactions) lifts the column as a whole: the air next
-// to the floor rarefies and the mass centre rises (README, Physics and numerics, Column drift). Subtracting the
+// to the floor rarefies and the mass centre rises (docs/physics.md, Column drift). Subtracting the
 // mass-weighted mean u_y, P = sum m u_y / sum m, is the M-orthogonal projection onto zero net momentum:
 // it removes M P^2 / 2 of kinetic energy and never adds any. One mode only: removing the mean per height
 // bin instead also fights the bins' sampling noise, and drained a gravity wave (38% of its energy in two

@@ -229,7 +229,7 @@ void solve_density(SolverData& d, const WallNeighbourhoods& walls, bool first_su
     const bool keep_shift = !d.shift_y.empty();
     if (keep_shift) parallel_for(d.n, KeepHeight{raw(d.pred), raw(d.shift_y)});
     // pbf.remove_shift_drift: the solve's net vertical shift sum m dy / sum m is the closed column's rigid mode
-    // (as the column drift is for velocities; README, Shift drift), subtracted from every particle afterwards.
+    // (as the column drift is for velocities; docs/physics.md, Shift drift), subtracted from every particle afterwards.
     // VerticalMomentum with the positions in place of the velocities sums (m y, m).
     const bool closed_column = d.p.velocity_projection && d.p.remove_shift_drift && !d.p.periodic[1] && d.n > 0;
     StepSums* sums = raw(d.step_sums);
