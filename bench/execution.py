@@ -30,7 +30,6 @@ of the folder.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 import time
@@ -43,12 +42,22 @@ from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_param
 from bench.store.files import save_frame, save_npz, sha256_file
 from bench.store.identity import RUN_FORMAT, RunSpec
 from bench.store.lock import locked
-from bench.store.manifest import finished_files, info_checksum, manifest, now, quarantine, verify_run
+from bench.store.manifest import (finished_files, info_checksum, manifest, now, quarantine, quarantine_entry,
+                                  verify_run)
 from bench.store.result import RunResult
+from bench.store.safe import StoreError, UnsafeFileError, append_line, entry_kind, read_json, store_error
 from pbf_cuda.files import atomic_write_json, remove_stale_temps
 from pbf_cuda.protocol import InstabilityError
 
-__all__ = ["execute", "execute_summary", "cached_result"]
+__all__ = ["execute", "execute_summary", "cached_result", "StoreError"]
+
+PARTIAL = ("stats", "profiles", "steps")      # partial/NAME.json: the rows gathered up to the checkpoint
+MAX_PROGRESS_BYTES = 16 << 20                  # progress.json (timings, checksums)
+# What a run directory holds, by kind; anything else under these names (a link, a folder for a file, a
+# device) is moved to the quarantine before an attempt starts, never followed.
+RUN_FILES = {"config.json", "log.txt", "timings.csv", "stats.parquet", "profiles.parquet", "steps.csv",
+             "checkpoint.npz", "progress.json", "result.json"}
+RUN_FOLDERS = {"snapshots", "partial"}
 
 
 def merge_timings(base: dict, extra: dict) -> dict:
@@ -76,8 +85,7 @@ class _Run:
         self.refused = False         # True while the simulation is being created (nothing made yet)
 
     def log(self, message: str) -> None:
-        with open(self.dir / "log.txt", "a") as fh:
-            fh.write(f"{now()} {message}\n")
+        append_line(self.dir / "log.txt", f"{now()} {message}")
 
     # -- progress bookkeeping ------------------------------------------------------------------
     def _resume(self):
@@ -86,20 +94,22 @@ class _Run:
         fresh = {"step": 0, "timings": {}, "step_wall_s": 0.0, "timed_wall_s": 0.0, "max_particles": 0}
         ckpt, prog = self.dir / "checkpoint.npz", self.dir / "progress.json"
         attempt = ["checkpoint.npz", "progress.json", "partial"]
-        if not self.adapter.can_checkpoint or not (ckpt.exists() or prog.exists() or self.partial.exists()):
+        present = {name: entry_kind(self.dir / name) for name in attempt}
+        if not self.adapter.can_checkpoint or not any(present.values()):
             return None, fresh
-        if not (ckpt.exists() and prog.exists()):
+        if not (present["checkpoint.npz"] == "file" and present["progress.json"] == "file"):
             quarantine(self.dir, attempt, "checkpoint.npz and progress.json are not both present")
             return None, fresh
         try:
-            progress = json.loads(prog.read_text())
+            progress = read_json(prog, limit=MAX_PROGRESS_BYTES)
             if not isinstance(progress, dict):
                 raise ValueError("not a JSON object")
             step = progress["step"]
             for name in ("step_wall_s", "timed_wall_s", "max_particles"):
                 float(progress[name])
-            if not isinstance(progress["timings"], dict) or not isinstance(step, int):
-                raise ValueError("bad timings or step")
+            if (not isinstance(progress["timings"], dict) or not isinstance(step, int) or isinstance(step, bool)
+                    or not 0 < step < self.spec.total_steps or not isinstance(progress.get("partial"), dict)):
+                raise ValueError("bad timings, step or partial checksums")
         except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
             quarantine(self.dir, attempt, f"progress.json unreadable: {type(exc).__name__}: {str(exc)[:80]}")
             return None, fresh
@@ -107,8 +117,12 @@ class _Run:
             quarantine(self.dir, attempt, "progress.json belongs to another run (key "
                                           f"{str(progress.get('key'))[:16]}, this run {self.identity_key[:16]})")
             return None, fresh
-        if progress.get("checkpoint_sha256") != sha256_file(ckpt):
-            quarantine(self.dir, attempt, "checkpoint.npz does not match the sha256 in progress.json")
+        try:
+            if progress.get("checkpoint_sha256") != sha256_file(ckpt):
+                raise ValueError("checkpoint.npz does not match the sha256 in progress.json")
+            rows = {name: self._partial_rows(name, step, progress["partial"]) for name in PARTIAL}
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            quarantine(self.dir, attempt, f"{type(exc).__name__}: {str(exc)[:120]}")
             return None, fresh
         try:
             sim = self.adapter.load(ckpt, self.spec)
@@ -122,28 +136,34 @@ class _Run:
         if sim.step_count != step:
             quarantine(self.dir, attempt, f"checkpoint step {sim.step_count} != progress step {step}")
             return None, fresh
-        try:
-            rows = {name: self._partial_rows(name, step) for name in ("stats", "profiles", "steps")}
-        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-            quarantine(self.dir, attempt, f"partial diagnostics unreadable: {type(exc).__name__}: {str(exc)[:80]}")
-            return None, fresh
         self.resumed_rows = rows
         return sim, progress
 
-    def _partial_rows(self, name: str, upto: int) -> list[dict]:
+    def _partial_rows(self, name: str, upto: int, checksums: dict) -> list[dict]:
+        """The rows of partial/NAME.json, checked against the sha256 progress.json holds for it (a file of
+        another attempt or run, or one that progress.json does not vouch for, is refused: ValueError)."""
         path = self.partial / f"{name}.json"
-        if not path.exists():
+        expected = checksums.get(name)
+        if entry_kind(path) is None and expected is None:
             return []
-        rows = json.loads(path.read_text())
+        if expected is None or sha256_file(path) != expected:
+            raise ValueError(f"partial/{name}.json does not match the sha256 in progress.json")
+        rows = read_json(path)
         if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
             raise ValueError(f"partial/{name}.json: expected a list of rows")
-        return [r for r in rows if r["step"] <= upto]
+        for r in rows:
+            step = r.get("step")
+            if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step <= upto:
+                raise ValueError(f"partial/{name}.json: a row of step {str(step)[:20]} (expected 0 to {upto})")
+        return rows
 
     def _checkpoint(self, sim, progress: dict) -> None:
-        for name, rows in (("stats", self.rows), ("profiles", self.profile_rows), ("steps", self.step_rows)):
-            atomic_write_json(self.partial / f"{name}.json", rows, sort_keys=False)  # keeps column order
+        checksums = {}
+        for name, rows in zip(PARTIAL, (self.rows, self.profile_rows, self.step_rows)):
+            path = atomic_write_json(self.partial / f"{name}.json", rows, sort_keys=False)  # keeps column order
+            checksums[name] = sha256_file(path)
         self.adapter.save(sim, self.dir / "checkpoint.npz")
-        progress = {**progress, "key": self.identity_key,
+        progress = {**progress, "key": self.identity_key, "partial": checksums,
                     "checkpoint_sha256": sha256_file(self.dir / "checkpoint.npz")}
         atomic_write_json(self.dir / "progress.json", progress)
         self.log(f"checkpoint at step {progress['step']}")
@@ -250,7 +270,7 @@ class _Run:
             failure = exc
             self.log(f"UNSTABLE: {exc}")
         except BaseException as exc:
-            self.log(f"interrupted at step {sim.step_count}: {exc!r}")
+            self.log(f"interrupted at step {sim.step_count}: {exc!r}"[:2000])
             raise
         finally:
             bar.close()
@@ -324,37 +344,79 @@ class _Run:
         return RunResult(self.dir, info, cached=False)
 
 
+def _odd_entries(directory: Path) -> list[str]:
+    """Entries of a run directory of the wrong kind: a known file that is not a regular file, a known folder
+    that is not a folder, anything but regular files inside snapshots/ and partial/."""
+    odd = []
+    for name in sorted(RUN_FILES | RUN_FOLDERS):
+        kind = entry_kind(directory / name)
+        if kind is not None and kind != ("dir" if name in RUN_FOLDERS else "file"):
+            odd.append(name)
+        elif kind == "dir":
+            odd.extend(f"{name}/{p.name}" for p in sorted((directory / name).iterdir()) if entry_kind(p) != "file")
+    return odd
+
+
+def _served(directory: Path, key: str) -> RunResult | None:
+    """The stored result when the directory holds a finished run that passes verify_run, else None."""
+    if entry_kind(directory) == "dir" and entry_kind(directory / "result.json") == "file" \
+            and not verify_run(directory, key):
+        try:
+            return RunResult.load(directory, cached=True)
+        except (OSError, ValueError):            # changed between the check and the read: not served
+            return None
+    return None
+
+
 def execute(spec: RunSpec, root: str | Path | None = None, *, quiet: bool = False,
             on_step: Callable[[int], None] | None = None) -> RunResult:
     """Run `spec` (or return its stored result without any work).  See the module docstring.
 
-    A stored result is served only when it passes verify_run; otherwise its files go to the quarantine
-    folder (logged) and the run is computed again.  A run that cannot start (no such backend, too large
-    for the memory) raises before its directory is made.
+    A stored result is served only when it passes verify_run (a read-only cache serves the runs it holds);
+    otherwise its files go to the quarantine folder (logged) and the run is computed again.  A run that
+    cannot start (no such backend, too large for the memory) raises before its directory is made.  A cache
+    that cannot be written (read-only, full, no permission) raises StoreError naming the run directory,
+    with no temporary file left.
 
     on_step(step) is called after every chunk of steps (tests use it to simulate a crash)."""
     identity = spec.identity()
     key = spec.key(identity)
     directory = spec.directory(root, key)
-    if (directory / "result.json").exists() and not verify_run(directory, key):
-        return RunResult.load(directory, cached=True)
+    served = _served(directory, key)
+    if served is not None:
+        return served
     ADAPTERS[spec.solver].preflight(spec)
-    created = not directory.exists()
-    directory.mkdir(parents=True, exist_ok=True)
-    with locked(directory):
-        remove_stale_temps(directory, owned=True)       # we hold the lock: no writer is in here
-        if (directory / "result.json").exists():
-            problems = verify_run(directory, key)
-            if not problems:
-                return RunResult.load(directory, cached=True)
-            quarantine(directory, finished_files(directory), "; ".join(problems[:3]))
-        attempt = _Run(spec, identity, key, directory, quiet, on_step)
-        try:
-            return attempt.run()
-        except BaseException:
-            if attempt.refused and created:
-                shutil.rmtree(directory, ignore_errors=True)
+    try:
+        kind = entry_kind(directory)
+        if kind not in (None, "dir"):
+            quarantine_entry(directory, f"a {kind} stood where the run directory belongs")
+        created = entry_kind(directory) is None
+        directory.mkdir(parents=True, exist_ok=True)
+        if not os.access(directory, os.W_OK | os.X_OK):
+            raise StoreError(f"{directory}: cannot write (no permission, or a read-only file system); the run "
+                             "is not stored there finished; pass a writable --runs-root")
+        with locked(directory):
+            remove_stale_temps(directory, owned=True)       # we hold the lock: no writer is in here
+            odd = _odd_entries(directory)
+            if odd:
+                quarantine(directory, odd, "not the kind of file a run directory holds (links are not followed)")
+            if entry_kind(directory / "result.json") is not None:
+                problems = verify_run(directory, key)
+                if not problems:
+                    return RunResult.load(directory, cached=True)
+                quarantine(directory, finished_files(directory), "; ".join(problems[:3]))
+            attempt = _Run(spec, identity, key, directory, quiet, on_step)
+            try:
+                return attempt.run()
+            except BaseException:
+                if attempt.refused and created:
+                    shutil.rmtree(directory, ignore_errors=True)
+                raise
+    except OSError as exc:
+        error = store_error(exc, directory)
+        if error is None:
             raise
+        raise error from None
 
 
 def execute_summary(spec: RunSpec, root: str | Path | None = None) -> dict:
@@ -367,7 +429,4 @@ def cached_result(spec: RunSpec, root: str | Path | None = None) -> RunResult | 
     moves a damaged one aside and recomputes it)."""
     identity = spec.identity()
     key = spec.key(identity)
-    directory = spec.directory(root, key)
-    if (directory / "result.json").exists() and not verify_run(directory, key):
-        return RunResult.load(directory, cached=True)
-    return None
+    return _served(spec.directory(root, key), key)

@@ -1,11 +1,12 @@
-"""Atomic writers of the run store (tables, arrays) on pbf_cuda.files.atomic_path, and file checksums."""
+"""Atomic writers of the run store (tables, arrays) on pbf_cuda.files.atomic_path, and file checksums
+(sha256_file: bench.store.safe's, which never follows links and reads regular files only)."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 
+from bench.store.safe import sha256_file
 from pbf_cuda.files import atomic_path
 
 __all__ = ["save_frame", "save_npz", "sha256_file"]
@@ -29,11 +30,3 @@ def save_npz(path: Path, arrays: dict) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-
-
-def sha256_file(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

@@ -9,7 +9,13 @@ __all__ = ["locked"]
 
 @contextlib.contextmanager
 def locked(directory: Path):
-    """Exclusive lock on the run directory, so two processes never run the same spec at once."""
+    """Exclusive lock on the run directory, so two processes never run the same spec at once.  A `.lock` that
+    is not a regular file (a folder, a link) is moved to the quarantine first, never followed."""
+    from bench.store.manifest import quarantine
+    from bench.store.safe import entry_kind
+    kind = entry_kind(directory / ".lock")
+    if kind not in (None, "file"):
+        quarantine(directory, [".lock"], f".lock is a {kind}, not a lock file")
     try:
         from filelock import FileLock  # portable: fcntl on POSIX, msvcrt on Windows (the harness extra)
     except ImportError:                # a bare POSIX machine without it (e.g. a GPU node): plain flock

@@ -1,7 +1,6 @@
 """A finished run (stable or not) read back from its directory: RunResult."""
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,8 +19,11 @@ class RunResult:
     @classmethod
     def load(cls, path: str | Path, cached: bool = False) -> "RunResult":
         """The result in `path` (not verified: see verify_run and cached_result)."""
+        from bench.store.manifest import read_result
         path = Path(path)
-        info = json.loads((path / "result.json").read_text())
+        info = read_result(path)
+        if not isinstance(info, dict):
+            raise ValueError(f"{path / 'result.json'}: not a JSON object")
         info.pop("manifest", None)
         info.pop("checksum", None)
         return cls(path, info, cached)
