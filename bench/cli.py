@@ -9,6 +9,7 @@
     cloudpbf scaling                         ms per step against particle and cell counts
     cloudpbf report                          HTML report from OUT/data
     cloudpbf demo                            all of the above at a scale that fits this machine
+    cloudpbf runs                            the runs of the cache; `runs show ID`, `runs prune`
     cloudpbf export RUN --format vtp         a run's snapshots for ParaView (vtu, vtp), Houdini (bgeo) or xarray (netcdf, zarr)
     cloudpbf adaptive-cost                   split and merge cost of the adaptive scenes (GPU benchmark)
     cloudpbf constant-gravity                growing with a constant gravity added (the cycling deviation)
@@ -34,6 +35,7 @@ import typer
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
                               parse_overrides, refusals, scene_arg, study_context)
+from bench.cli_runs import physics_lines, resolve_run, runs_app
 from bench.grid_scaling import grid_scaling_command
 
 app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
@@ -114,12 +116,16 @@ def run(
     with refusals(particles):
         result = runs.execute(spec, runs_root, quiet=quiet)
     timings = result.timings()
+    from bench.export import effective_seed
     typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
-    typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {seed}, backend {result.backend}, "
+    typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {effective_seed(spec.identity())}, "
+               f"backend {result.backend}, "
                f"{result.max_particles or result.cells} {'particles (max)' if spec.solver == 'particles' else 'cells'}, "
                f"{result.step_wall_s:.2f} s in steps")
     for phase, t in timings.items():
         typer.echo(f"  {phase:15s} {t['mean_ms']:10.3f} ms/step")
+    for line in physics_lines(result.path, result.info):
+        typer.echo(line)
     if not result.stable:
         ids = ", ".join(map(str, result.particles)) or "none identified"
         typer.echo(f"UNSTABLE at step {result.step}: {result.reason}; particles: {ids}; "
@@ -128,14 +134,27 @@ def run(
 
 
 # ---- the studies' own commands (each declared in its study file, found through the registry) ------------
+def _refusing(command):
+    """A study's command with what it cannot do as asked (a scene too large, a cache it cannot write, ...)
+    turned into one line and exit code 2 (cli_common.refusals), whatever path inside raised it."""
+    import functools
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        with refusals():
+            return command(*args, **kwargs)
+    return wrapper
+
+
 def _add_study_commands() -> None:
     from bench.studies.registry import studies
     for study in studies():
         if study.command is not None:
-            app.command(study.name)(study.command)
+            app.command(study.name)(_refusing(study.command))
 
 
 _add_study_commands()
+app.add_typer(runs_app, name="runs")
 
 
 @app.command()
@@ -189,34 +208,51 @@ class ExportFormat(str, Enum):
 
 @app.command()
 def export(
-    run_dir: Annotated[Path, typer.Argument(metavar="RUN", help="a run directory (printed by `cloudpbf run`)")],
+    run_dir: Annotated[str, typer.Argument(metavar="RUN", help="a run folder, or a unique prefix of a run's folder "
+                                                               "name or key (`cloudpbf runs` lists them)")],
     format: Annotated[ExportFormat, typer.Option("--format", "-f", help="vtu/vtp: a ParaView time series (.pvd "
                                                  "+ one file per snapshot); bgeo: Houdini, NAME.0001.bgeo, ... "
                                                  "one per snapshot (particle runs); netcdf/zarr: an xarray "
                                                  "Dataset (time, x, y, z) with CF attributes")] = ExportFormat.vtp,
-    out: Annotated[Optional[Path], typer.Option("--out", help="where to write (default: RUN/export/...)")] = None,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="an existing folder to write into, or the path the export becomes (default: RUN/export)")] = None,
     resolution: Annotated[Optional[str], typer.Option(
         help="netcdf/zarr of a particle run: deposition grid nx,ny,nz (default: one cell per particle spacing, "
              "the grid baseline's grid)")] = None,
+    force: Annotated[bool, typer.Option("--force", help="replace an earlier export of the same run (never "
+                                                         "anything else)")] = False,
+    unverified: Annotated[bool, typer.Option("--unverified", help="export a run that has not finished or fails "
+                                                                  "verification, its snapshots as they are")] = False,
+    runs_root: RunsRootOpt = None,
 ) -> None:
     """Export a run's stored snapshots for ParaView (vtu, vtp), Houdini (bgeo) or xarray (netcdf, zarr).
 
     Particle runs: every particle with every field (units in the field data) as .vtu/.vtp or as
     Houdini's classic .bgeo (P, v and every field, units and time in detail attributes), or deposited
     on the grid baseline's grid as NetCDF/zarr, so a particle run and a grid run of one scene compare cell
-    by cell.  Grid runs: the cell-centred fields (vtu, vtp, netcdf, zarr)."""
-    from bench.export import FormatError, export_run
+    by cell.  Grid runs: the cell-centred fields (vtu, vtp, netcdf, zarr).  Nothing that exists is
+    replaced (--force: an earlier export of the same run only); exit code 2 when the target exists, the
+    run is unfinished or damaged, or memory or disk do not suffice."""
+    from bench.export import ExportError, FormatError, export_run
     cells = parse_list(resolution, "--resolution", int, 1, 4096, "64,64,64")
     if cells is not None and len(cells) != 3:
         raise typer.BadParameter(f"'{resolution}': expected three cell counts nx,ny,nz", param_hint="'--resolution'")
+    if out is not None:
+        text = str(out)
+        if "\0" in text or len(text) > 4096:
+            raise typer.BadParameter(f"'{text[:60]}': not a usable path", param_hint="'--out'")
+    path = resolve_run(run_dir, runs_root)
     try:
-        path = export_run(run_dir, format.value, out, resolution=tuple(cells) if cells else None)
+        path = export_run(path, format.value, out, resolution=tuple(cells) if cells else None, force=force,
+                          unverified=unverified)
     except FileNotFoundError as exc:
         raise typer.BadParameter(str(exc), param_hint="'RUN'") from None
     except FormatError as exc:
         raise typer.BadParameter(str(exc), param_hint="'--format'") from None
-    except ValueError as exc:
-        raise click.UsageError(str(exc)) from None
+    except (ExportError, ValueError) as exc:
+        raise click.UsageError(" ".join(str(exc).split())) from None
+    except OSError as exc:                  # a folder on the way that cannot be made or read
+        raise click.UsageError(f"{exc.filename or path}: {exc.strerror or exc}") from None
     if format is ExportFormat.bgeo:
         frames = sorted(path.glob("*.bgeo"))
         typer.echo(f"wrote {path}: {len(frames)} frames, {frames[0].name} .. {frames[-1].name}")

@@ -135,7 +135,9 @@ def check_folder(path: Optional[Path], option: str) -> None:
     if not probe.is_dir():
         raise typer.BadParameter(f"'{shown}': {probe} is a file, so the folder cannot be made",
                                  param_hint=f"'{option}'")
-    if not os.access(probe, os.W_OK | os.X_OK):
+    # A run cache is looked in before anything is written (a read-only cache serves the runs it holds);
+    # a write it cannot do ends in one line then (bench.store.safe.StoreError).
+    if option not in ("--runs-root", "$CLOUDPBF_RUNS") and not os.access(probe, os.W_OK | os.X_OK):
         raise typer.BadParameter(f"'{shown}': {probe} is not writable", param_hint=f"'{option}'")
 
 
@@ -161,12 +163,15 @@ def check_backend(backend: Backend, solver: str = "particles") -> None:
 @contextlib.contextmanager
 def refusals(particles: Optional[int] = None):
     """What a command cannot do as asked ends in one line and exit code 2: scene and memory checks,
-    an unusable scheduler, a stale compiled solver."""
+    an unusable scheduler, a stale compiled solver, a run cache that cannot be written."""
+    from bench.store.safe import StoreError
     from bench.studies.context import GpuError, SchedulerError
     from pbf_cuda.buildinfo import StaleBuildError
     from pbf_cuda.scene import SceneError
     try:
         yield
+    except StoreError as exc:
+        raise click.UsageError(" ".join(str(exc).split())) from None
     except SceneError as exc:
         prefix = f"--particles {particles}: " if particles is not None else ""
         raise click.UsageError(prefix + " ".join(str(exc).split())) from None

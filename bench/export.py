@@ -16,29 +16,51 @@
   cell per particle spacing, or ``--resolution``), so a particle run and a grid run of the same
   scene line up cell by cell: ``xr.open_dataset(a) - xr.open_dataset(b)``.
 
+Where it goes: ``--out`` (default ``RUN/export``).  An existing folder gets the export inside it, named
+from the run (``<solver>-<scene name>``, the scene name reduced to letters, digits and ``_ . -``):
+``<name>.nc``, ``<name>.zarr``, or a folder ``<name>`` of VTK or .bgeo frames; a path that does not exist
+yet is the export itself.  Nothing is ever deleted or replaced that the export did not write: an
+existing target is refused with one line naming it; ``force`` replaces it only when it is an earlier
+export of the same run (the record every export carries says so), in one rename.  The export is built
+under a temporary name beside its target and moved into place at the end (bench.store.targets), so a
+full or read-only disk ends in one :class:`ExportError` naming the path and leaves nothing behind;
+the free space is checked first, and so is the memory the export needs (``--resolution`` sets it).
+
+What is exported: the snapshots the run's manifest lists, each checked against its sha256 (a damaged
+or unfinished run is refused unless ``unverified``: then every snapshot file there is, as it is).
+
 Python: :func:`run_to_xarray`, :func:`particles_to_xarray`, :func:`combine_solvers` (both solvers'
 Datasets along a ``solver`` dimension), :func:`export_run`.
 """
 from __future__ import annotations
 
+import io
 import json
+import math
 import os
-import shutil
+import re
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
 from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
+from bench.store.manifest import read_result, verify_run
+from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
+from bench.store.targets import NETCDF_ATTR, ExportError, check_free_space, marker_of, staged
 from pbf_cuda.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
 
-__all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "particles_to_xarray", "run_to_xarray", "combine_solvers",
-           "export_run", "run_info"]
+__all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "ExportError", "particles_to_xarray", "run_to_xarray",
+           "combine_solvers", "export_run", "run_info", "export_name"]
 
 FORMATS = ("vtu", "vtp", "bgeo", "netcdf", "zarr")
 PARTICLE_ONLY = ("bgeo",)
 """Formats of particle runs only (a grid run has cells, not particles)."""
 SUFFIX = {"vtu": "", "vtp": "", "bgeo": "", "netcdf": ".nc", "zarr": ".zarr"}
+SNAPSHOT = re.compile(r"snapshots/step_\d{6}\.npz")
+MAX_CONFIG_BYTES = 16 << 20
+GRID_VARIABLES = 8          # density, temperature, vapor, cloud, velocity x/y/z (+ one more grid's worth)
+MEMORY_SAFETY = 0.8         # use at most this fraction of the available memory
 
 
 class FormatError(ValueError):
@@ -46,51 +68,110 @@ class FormatError(ValueError):
 
 
 def _scene_from_identity(identity: Mapping):
-    from pbf_cuda.scene import scene_from_dict
+    from pbf_cuda.scene import SceneError, sanitize_name, scene_from_dict
     data = json.loads(json.dumps(identity["scene"]))
-    return scene_from_dict(data, source=str(identity["scene"].get("scene", {}).get("name", "scene")))
+    head = data.get("scene") if isinstance(data.get("scene"), dict) else {}
+    head["name"] = sanitize_name(head.get("name", "scene"))      # runs stored before names were restricted
+    data["scene"] = {k: v for k, v in head.items() if k in ("name", "description")}
+    try:
+        return scene_from_dict(data, source=head["name"])
+    except SceneError as exc:
+        raise ExportError(f"the run's config.json holds an invalid scene: {exc}") from None
 
 
-def run_info(run_dir: str | Path) -> dict:
-    """The run's ``config.json`` identity (solver, scene, seed, ...) and its snapshot files."""
+def run_info(run_dir: str | Path, unverified: bool = False) -> dict:
+    """The run's identity (config.json: solver, scene, seed, ...), its key and the snapshot files to export.
+
+    A finished run must pass verify_run and gives the snapshots its manifest lists (other files in
+    snapshots/ are not its own); a run without result.json, or one that fails verification, raises
+    ExportError unless `unverified` (then every regular ``snapshots/step_NNNNNN.npz`` is taken as it is).
+    FileNotFoundError when `run_dir` is no run directory."""
     run_dir = Path(run_dir)
-    config = run_dir / "config.json"
-    if not config.exists():
+    if entry_kind(run_dir) != "dir" or entry_kind(run_dir / "config.json") != "file":
         raise FileNotFoundError(f"{run_dir}: not a run directory (no config.json); "
-                                "run directories are printed by `cloudpbf run`")
-    identity = json.loads(config.read_text())["identity"]
-    snapshots = sorted((run_dir / "snapshots").glob("step_*.npz"))
-    if not snapshots:
+                                "`cloudpbf runs` lists the runs")
+    try:
+        config = read_json(run_dir / "config.json", limit=MAX_CONFIG_BYTES)
+        identity = config["identity"]
+        solver = identity["solver"]
+        if solver not in ADAPTERS or not isinstance(identity.get("scene"), dict):
+            raise ValueError(f"solver {str(solver)[:20]!r}")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ExportError(f"{run_dir / 'config.json'}: unreadable ({type(exc).__name__}: {str(exc)[:80]})") from None
+    key = config.get("key") if isinstance(config.get("key"), str) else None
+    sizes = {}
+    if entry_kind(run_dir / "result.json") is None:
+        problem = "it has not finished (no result.json)"
+    else:
+        problems = verify_run(run_dir, key)
+        problem = f"it fails verification: {problems[0]}" if problems else None
+        if not problems:
+            listed = read_result(run_dir)["manifest"]
+            sizes = {run_dir / rel: entry["bytes"] for rel, entry in sorted(listed.items()) if SNAPSHOT.fullmatch(rel)}
+    if problem is not None:
+        if not unverified:
+            raise ExportError(f"{run_dir}: {problem}; --unverified exports its snapshots as they are")
+        folder = run_dir / "snapshots"
+        files = sorted(folder.glob("step_*.npz")) if entry_kind(folder) == "dir" else []
+        sizes = {p: None for p in files if entry_kind(p) == "file" and SNAPSHOT.fullmatch(f"snapshots/{p.name}")}
+    if not sizes:
         raise FileNotFoundError(f"{run_dir}: no stored snapshots (snapshots/step_*.npz)")
-    return {"identity": identity, "solver": identity["solver"], "snapshots": snapshots}
+    return {"identity": identity, "solver": solver, "key": key, "snapshots": list(sizes), "sizes": sizes,
+            "verified": problem is None}
 
 
-def _load_npz(path: Path) -> dict:
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
+def export_name(info: dict) -> str:
+    """The export's file name stem: <solver>-<scene name>, the name reduced to letters, digits and _ . -."""
+    from pbf_cuda.scene import sanitize_name
+    return f"{info['solver']}-{sanitize_name(info['identity']['scene'].get('scene', {}).get('name', 'scene'))}"
 
 
-def run_to_xarray(run_dir: str | Path, resolution=None, like=None):
+def _load_npz(path: Path, size: int | None = None) -> dict:
+    """A snapshot, read as a regular file (links refused) of at most `size` bytes (the manifest's)."""
+    limit = size if size is not None else max(0, (entry_kind(path) == "file" and path.lstat().st_size) or 0)
+    try:
+        raw = read_bytes(path, limit)
+        with np.load(io.BytesIO(raw), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, UnsafeFileError, EOFError) as exc:
+        raise ExportError(f"{path}: unreadable snapshot ({type(exc).__name__}: {str(exc)[:80]})") from None
+
+
+def _frames(info: dict):
+    for path in info["snapshots"]:
+        yield _load_npz(path, info["sizes"][path])
+
+
+def run_to_xarray(run_dir: str | Path, resolution=None, like=None, unverified: bool = False, info: dict | None = None):
     """Every snapshot of a run as one Dataset with dimensions (time, x, y, z); ``step`` is a
     coordinate along time.  Particle runs are deposited (see :func:`particles_to_xarray`)."""
     import xarray as xr
-    info = run_info(run_dir)
+    info = info or run_info(run_dir, unverified)
     scene = _scene_from_identity(info["identity"])
     adapter = ADAPTERS[info["solver"]]
-    frames = [adapter.snapshot_dataset(_load_npz(p), scene, resolution=resolution, like=like)
-              for p in info["snapshots"]]
     stacked = []
-    for f in frames:
+    for snap in _frames(info):
+        f = adapter.snapshot_dataset(snap, scene, resolution=resolution, like=like)
         attrs = dict(f["step"].attrs)
-        f = f.expand_dims("time").assign_coords(step=("time", [int(f["step"])], attrs))
-        stacked.append(f)
+        stacked.append(f.expand_dims("time").assign_coords(step=("time", [int(f["step"])], attrs)))
     ds = xr.concat(stacked, dim="time", data_vars="all", coords="minimal", compat="override",
                    combine_attrs="override")
     ident = info["identity"]
-    ds.attrs.update({"run": Path(run_dir).name, "seed": -1 if ident.get("seed") is None else int(ident["seed"]),
+    ds.attrs.update({"run": Path(run_dir).name, "seed": effective_seed(ident),
                      "backend": str(ident.get("backend")), "code": str(ident.get("code")),
                      "steps": int(ident.get("steps", 0))})
     return ds
+
+
+def effective_seed(identity: Mapping) -> int:
+    """The seed a run ran with: its own, else the scene's particles.seed."""
+    seed = identity.get("seed")
+    if seed is None:
+        seed = (identity.get("scene") or {}).get("particles", {}).get("seed", 0)
+    try:
+        return int(seed)
+    except (TypeError, ValueError):
+        return -1
 
 
 def combine_solvers(datasets: Mapping[str, object]):
@@ -117,40 +198,107 @@ def combine_solvers(datasets: Mapping[str, object]):
     return out
 
 
-def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, resolution=None) -> Path:
+def _need_bytes(info: dict, fmt: str, scene, resolution) -> tuple[int, int]:
+    """(memory, disk) bytes an export needs, estimated before anything is read: gridded formats hold every
+    snapshot's grid (deposited for particles) about three times over (frames, the stacked Dataset, the
+    encoded file); point formats one snapshot at a time."""
+    sizes = [s if s is not None else p.lstat().st_size for p, s in info["sizes"].items()]
+    if fmt in ("netcdf", "zarr"):
+        if info["solver"] == "particles":
+            from bench.statistics import grid_for_scene
+            shape, _ = grid_for_scene(scene, resolution)
+            grid = math.prod(int(n) for n in shape) * 8 * GRID_VARIABLES
+        else:
+            grid = max(sizes) * 2                 # float32 fields stored, float64 in the Dataset
+        data = grid * len(sizes)
+        return 3 * data + 4 * max(sizes), data
+    return 4 * max(sizes), sum(sizes) * 2         # base64 inline VTK: 4/3 of the raw bytes, and the .pvd
+
+
+def _check_memory(need: int, resolution) -> None:
+    from pbf_cuda.memory import available_memory
+    avail = available_memory("cpu")
+    if avail is not None and need > MEMORY_SAFETY * avail:
+        hint = f"--resolution {','.join(map(str, resolution))}" if resolution else "the export"
+        raise ExportError(f"{hint}: needs about {need / 2**30:.2f} GiB of memory, {avail / 2**30:.2f} GiB "
+                          "available; lower --resolution (cells per axis) or export fewer snapshots")
+
+
+def _target(run_dir: Path, out, name: str, fmt: str, record: dict) -> Path:
+    """The path the export becomes: OUT/<name><suffix> when OUT is an existing folder (other than an earlier
+    export of this run), else OUT itself; RUN/export/<name><suffix> without OUT."""
+    filename = f"{name}{SUFFIX[fmt]}"
+    if out is None:
+        folder = run_dir / "export"
+        if entry_kind(folder) not in (None, "dir"):
+            raise ExportError(f"{folder}: is not a folder; give --out")
+        folder.mkdir(exist_ok=True)
+        return folder / filename
+    out = Path(out)
+    if out.is_dir() and not _same_export(marker_of(out), record):
+        return out / filename
+    if not out.parent.is_dir():
+        raise ExportError(f"{out.parent}: no such folder (--out's folder must exist)")
+    return out
+
+
+def _same_export(marker: dict | None, record: dict) -> bool:
+    return marker is not None and all(marker.get(k) == record[k] for k in ("run", "key", "format"))
+
+
+def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, resolution=None, *,
+               force: bool = False, unverified: bool = False) -> Path:
     """Write a run's snapshots in `fmt` (see :data:`FORMATS`); returns what was written (the .pvd for
     vtu/vtp, the folder of ``<name>.NNNN.bgeo`` files for bgeo, the file or store for netcdf/zarr).
-    Default `out`: ``RUN/export/<run name>`` plus the format's suffix (``.nc``, ``.zarr``; a folder for
-    vtu/vtp/bgeo).  Raises :class:`FormatError` for an unknown format or bgeo of a grid run."""
+    Where it goes and what it never touches: see the module docstring.
+
+    Raises :class:`FormatError` (unknown format, bgeo of a grid run), :class:`ExportError` (the target
+    exists, the run is damaged or unfinished, too little memory or disk, a disk error: one line naming
+    the path), FileNotFoundError (no run directory, no snapshots)."""
     if fmt not in FORMATS:
         raise FormatError(f"format {fmt!r}: allowed {', '.join(FORMATS)}")
     run_dir = Path(run_dir)
-    info = run_info(run_dir)
+    info = run_info(run_dir, unverified)
     if fmt in PARTICLE_ONLY and info["solver"] != "particles":
         allowed = ", ".join(f for f in FORMATS if f not in PARTICLE_ONLY)
         raise FormatError(f"format {fmt!r} holds particles; a {info['solver']} run exports as {allowed}")
     scene = _scene_from_identity(info["identity"])
-    name = f"{info['solver']}-{scene.name}"
-    out = Path(out) if out is not None else run_dir / "export" / f"{name}{SUFFIX[fmt]}"
-    if fmt == "bgeo":
-        write_bgeo_series((_load_npz(p) for p in info["snapshots"]), out, name=name, scene_name=scene.name)
-        return out
-    if fmt in ("vtu", "vtp"):
-        frames = [ADAPTERS[info["solver"]].snapshot_points(_load_npz(p)) for p in info["snapshots"]]
-        return write_particle_series(frames, out, fmt=fmt, name=name, scene_name=scene.name)
-    ds = run_to_xarray(run_dir, resolution=resolution)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
-    if fmt == "netcdf":
-        ds.to_netcdf(tmp, engine="h5netcdf")
-    else:
-        ds.to_zarr(tmp, mode="w")
-    if out.is_dir():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
-    return out
+    name = export_name(info)
+    record = {"run": run_dir.resolve().name, "key": info["key"], "format": fmt}
+    memory, disk = _need_bytes(info, fmt, scene, resolution)
+    _check_memory(memory, resolution)
+    target = _target(run_dir, out, name, fmt, record)
+    kind = entry_kind(target)
+    replace = False
+    if kind is not None:
+        ours = _same_export(marker_of(target), record)
+        if kind == "link" or not ours:
+            raise ExportError(f"{target}: exists and is not an export of this run; refusing to replace it "
+                              "(choose another --out)")
+        if not force:
+            raise ExportError(f"{target}: exists (an earlier export of this run); --force replaces it")
+        replace = True
+    check_free_space(target.parent, disk)
+    folder = fmt != "netcdf"
+    with staged(target, record, folder=folder, replace=replace) as stage:
+        if fmt == "bgeo":
+            write_bgeo_series(_frames(info), stage, name=name, scene_name=scene.name)
+        elif fmt in ("vtu", "vtp"):
+            adapter = ADAPTERS[info["solver"]]
+            write_particle_series((adapter.snapshot_points(f) for f in _frames(info)), stage, fmt=fmt, name=name,
+                                  scene_name=scene.name)
+        else:
+            ds = run_to_xarray(run_dir, resolution=resolution, info=info)
+            ds.attrs[NETCDF_ATTR] = json.dumps(record)
+            if fmt == "netcdf":
+                data = bytes(ds.to_netcdf(engine="h5netcdf"))   # in memory: the disk is written by Python
+                with open(stage, "xb") as fh:
+                    fh.write(data)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            else:
+                ds.to_zarr(stage, mode="w")
+    return target / f"{name}.pvd" if fmt in ("vtu", "vtp") else target
 
 
 def load_series(pvd: str | Path) -> list:

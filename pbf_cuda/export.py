@@ -34,10 +34,10 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .files import atomic_path, atomic_write_text
+from .files import atomic_write_bytes, atomic_write_text
 
 __all__ = ["PARTICLE_UNITS", "FIELD_ATTRS", "COORD_ATTRS", "BGEO_NAMES", "state_to_pyvista", "write_pvd",
-           "write_particle_series", "read_pvd", "state_to_bgeo", "write_bgeo_series", "fields_to_xarray",
+           "write_particle_series", "read_pvd", "vtk_xml_bytes", "state_to_bgeo", "write_bgeo_series", "fields_to_xarray",
            "CONVENTIONS"]
 
 CONVENTIONS = "CF-1.11"
@@ -157,10 +157,24 @@ def write_particle_series(frames: Iterable[Mapping[str, np.ndarray]], out_dir: s
         mesh = state_to_pyvista(frame, "polydata" if fmt == "vtp" else "unstructured", time=time, step=step,
                                 scene_name=scene_name)
         file = out / f"{name}_{step:06d}.{fmt}"
-        with atomic_path(file, keep_suffix=True) as tmp:      # pyvista picks the format from the suffix
-            mesh.save(tmp)
+        atomic_write_bytes(file, vtk_xml_bytes(mesh))
         entries.append((time, file))
     return write_pvd(entries, out / f"{name}.pvd")
+
+
+def vtk_xml_bytes(mesh) -> bytes:
+    """A pyvista PolyData or UnstructuredGrid as the bytes of a VTK XML file (.vtp / .vtu), made in memory
+    (binary data base64-encoded inline, zlib-compressed, as pyvista's own save writes it), so the file is
+    then written by Python: a full or read-only disk is an OSError, never a crash inside VTK's writer."""
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter, vtkXMLUnstructuredGridWriter
+    writer = vtkXMLPolyDataWriter() if mesh.GetDataObjectType() == 0 else vtkXMLUnstructuredGridWriter()
+    writer.SetInputData(mesh)
+    writer.SetDataModeToBinary()
+    writer.SetCompressorTypeToZLib()
+    writer.WriteToOutputStringOn()
+    if not writer.Write():
+        raise ValueError(f"VTK could not encode a {type(mesh).__name__}")
+    return writer.GetOutputString().encode("ascii")
 
 
 # ---- particles -> Houdini .bgeo ------------------------------------------------------------------

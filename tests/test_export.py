@@ -201,7 +201,7 @@ def test_cli_export_grid_run_netcdf(tmp_path):
     assert mesh.n_points == ds.sizes["x"] * ds.sizes["y"] * ds.sizes["z"]
 
 
-def _stored_run(root, solver, frames):
+def _stored_run(root, solver, frames, finished=True):
     """A run directory as `cloudpbf run` leaves it (config.json identity, snapshots/step_*.npz), made
     without the solver, so the export path runs where the compiled solver is absent."""
     from pbf_cuda import load_scene
@@ -214,6 +214,11 @@ def _stored_run(root, solver, frames):
                                                     default=json_default))
     for frame in frames:
         np.savez(run_dir / "snapshots" / f"step_{int(frame['step']):06d}.npz", **frame)
+    if finished:
+        from bench.store.manifest import info_checksum, manifest
+        info = {"key": None, "stable": True, "step": int(frames[-1]["step"]), "manifest": manifest(run_dir)}
+        info["checksum"] = info_checksum(info)
+        (run_dir / "result.json").write_text(json.dumps(info))
     return run_dir
 
 
@@ -227,7 +232,7 @@ def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
     folder = run_dir / "export" / "particles-growing"
     names = [f"particles-growing.000{i}.bgeo" for i in (1, 2, 3)]
     assert res.output.strip() == f"wrote {folder}: 3 frames, {names[0]} .. {names[-1]}"
-    assert sorted(p.name for p in folder.iterdir()) == names
+    assert sorted(p.name for p in folder.glob("*.bgeo")) == names
     for name, frame in zip(names, frames):
         back = read_bgeo(folder / name)
         assert back.points["P"].tobytes() == frame["position"].tobytes()
@@ -240,12 +245,12 @@ def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
         assert back.detail["scene"] == "growing" and back.detail["temperature_unit"] == "K"
     res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo", "--out", str(tmp_path / "houdini")])
     assert res.exit_code == 0, res.output
-    assert sorted(p.name for p in (tmp_path / "houdini").iterdir()) == names
+    assert sorted(p.name for p in (tmp_path / "houdini").glob("*.bgeo")) == names
 
 
 def test_cli_export_errors(tmp_path):
     res = runner.invoke(app, ["export", str(tmp_path), "--format", "vtp"])
-    assert res.exit_code == 2 and "not a run directory" in res.output
+    assert res.exit_code == 2 and "no run folder there" in res.output
     res = runner.invoke(app, ["export", str(tmp_path), "--format", "obj"])
     assert res.exit_code == 2 and "'obj' is not one of" in res.output and "'bgeo'" in res.output
     grid = {"x": np.arange(2.0), "y": np.arange(3.0), "z": np.arange(2.0), "cloud": np.zeros((2, 3, 2)),

@@ -66,7 +66,7 @@ def parse_gpus(text) -> str | int | None:
     value = str(text).strip().lower()
     if value == GPUS_ALL:
         return GPUS_ALL
-    if value.isdigit() and 1 <= int(value) <= 1024:
+    if re.fullmatch(r"[0-9]{1,4}", value) and 1 <= int(value) <= 1024:      # ASCII digits only ("²" is no count)
         return int(value)
     shown = value if len(value) <= 40 else value[:37] + "..."
     raise GpuError(f"'{shown}': expected 'all' or a number of GPUs (1, 2, ...)")
@@ -104,7 +104,7 @@ def cuda_cluster(devices: list[str], env: dict):
                             dashboard_address=None, silence_logs=logging.CRITICAL, env=env)
 
 
-_SCHEDULER = re.compile(r"^(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?$")
+_SCHEDULER = re.compile(r"(?:(tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})/?")
 SCHEDULER_TIMEOUT_S = float(os.environ.get("CLOUDPBF_SCHEDULER_TIMEOUT", "10"))
 
 
@@ -112,9 +112,10 @@ def check_scheduler_address(address: str) -> str:
     """'inline' or a dask scheduler address ([tcp|tls|ucx|ws|wss://]host:port); SchedulerError otherwise."""
     if address == INLINE:
         return address
-    m = _SCHEDULER.match(address or "")
+    m = _SCHEDULER.fullmatch(address) if isinstance(address, str) else None     # fullmatch: no trailing newline
     if not m or not 1 <= int(m.group(3)) <= 65535:
-        shown = address if len(address or "") <= 60 else address[:57] + "..."
+        shown = repr(address)[1:-1] if isinstance(address, str) else repr(address)
+        shown = shown if len(shown) <= 60 else shown[:57] + "..."
         raise SchedulerError(f"'{shown}': expected 'inline' or a dask scheduler address such as "
                              f"tcp://host:8786 (scheme tcp, tls, ucx, ws or wss; port 1-65535)")
     return address
@@ -346,6 +347,11 @@ class StudyContext:
                     why = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
                     raise SchedulerError(f"no dask scheduler answered at {self.scheduler} within "
                                          f"{SCHEDULER_TIMEOUT_S:g} s ({why})") from None
+                except Exception as exc:  # noqa: BLE001  (a peer that is no dask scheduler: a frame too
+                    # large to allocate (MemoryError), a message that does not decode, a protocol error)
+                    why = (str(exc).splitlines() or [""])[0][:160] or type(exc).__name__
+                    raise SchedulerError(f"the peer at {self.scheduler} does not answer as a dask scheduler "
+                                         f"({type(exc).__name__}: {why})") from None
             elif self.gpus is not None:
                 devices = self.gpu_devices()
                 cores = os.cpu_count() or 1
