@@ -145,7 +145,7 @@ def test_cli_export_particle_run_all_formats(particle_sim, tmp_path):
     assert len(snaps) >= 2
     res = runner.invoke(app, ["export", str(run_dir), "--format", "vtp", "--out", str(tmp_path / "vtk")])
     assert res.exit_code == 0, res.output
-    entries = read_pvd(tmp_path / "vtk" / "particles-growing.pvd")
+    entries = read_pvd(tmp_path / "vtk" / "particles-growing.pvd")  # --out that does not exist: the export itself
     assert len(entries) == len(snaps)
     with np.load(snaps[-1]) as z:
         last = {k: z[k] for k in z.files}
@@ -229,7 +229,7 @@ def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
     run_dir = _stored_run(tmp_path, "particles", frames)
     res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo"])
     assert res.exit_code == 0, res.output
-    folder = run_dir / "export" / "particles-growing"
+    folder = run_dir / "export" / "particles-growing-bgeo"
     names = [f"particles-growing.000{i}.bgeo" for i in (1, 2, 3)]
     assert res.output.strip() == f"wrote {folder}: 3 frames, {names[0]} .. {names[-1]}"
     assert sorted(p.name for p in folder.glob("*.bgeo")) == names

@@ -73,15 +73,16 @@ def info_checksum(info: dict) -> str:
 _VERIFIED: dict = {}     # result.json (path, mtime_ns, size) -> True: verified once in this process
 
 
-def verify_run(directory: str | Path, key: str | None = None) -> list[str]:
+def verify_run(directory: str | Path, key: str | None = None, memo: bool = True) -> list[str]:
     """Problems of a finished run directory (empty: it may be served). Checks result.json (JSON, its own
-    checksum, the run key) and every file of its manifest (present, size, sha256)."""
+    checksum, the run key) and every file of its manifest (present, size, sha256).  With `memo`, a run
+    verified before in this process (result.json unchanged) is not read again."""
     directory = Path(directory)
     path = directory / "result.json"
     try:
         st = os.lstat(path)
-        memo = (str(path), st.st_mtime_ns, st.st_size, st.st_ino, key)
-        if memo in _VERIFIED:
+        seen = (str(path), st.st_mtime_ns, st.st_size, st.st_ino, key)
+        if memo and seen in _VERIFIED:
             return []
         info = read_result(directory)
     except (FileNotFoundError, NotADirectoryError):
@@ -122,7 +123,7 @@ def verify_run(directory: str | Path, key: str | None = None) -> list[str]:
         except (OSError, UnsafeFileError) as exc:
             problems.append(f"{rel} is unreadable ({getattr(exc, 'strerror', None) or exc})")
     if not problems:
-        _VERIFIED[memo] = True
+        _VERIFIED[seen] = True
     return problems
 
 
