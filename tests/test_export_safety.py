@@ -288,7 +288,7 @@ _names = st.one_of(st.sampled_from(["..", ".", "../../x", "a/b", "victim", "new"
                    st.text(min_size=1, max_size=12).filter(lambda t: "\0" not in t))
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                  HealthCheck.too_slow])
 @given(fmt=st.sampled_from(FORMATS), out=_names, force=st.booleans(), unverified=st.booleans(),
        resolution=st.sampled_from([None, "2,2,2", "0,1,1", "a,b", "1,2", "4096,4096,4096", "3,3,3,3"]))
