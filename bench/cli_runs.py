@@ -154,8 +154,10 @@ def physics_lines(path: Path, info: dict) -> list[str]:
                 tables.append(reader(path / name))
         except (OSError, ValueError):
             continue
-    def column(name):
-        values = [t[name].dropna() for t in tables if name in t]
+    def column(name, stepped=False):
+        """A column over both tables; `stepped`: rows after step 0 only (the solver's step statistics, such
+        as the density error, describe a step and are placeholders before the first)."""
+        values = [(t[t["step"] > 0] if stepped and "step" in t else t)[name].dropna() for t in tables if name in t]
         values = [v for v in values if len(v)]
         return pd.concat(values) if values else None
     size = (f"{info['max_particles']:,} particles (max)" if info.get("max_particles")
@@ -166,11 +168,11 @@ def physics_lines(path: Path, info: dict) -> list[str]:
     speed = column("max_speed")
     if speed is not None:
         parts.append(f"largest speed {float(speed.max()):.3g} m/s")
-    err = column("density_error_max")
-    mean = column("density_error_mean")
+    err = column("density_error_max", stepped=True)
+    mean = column("density_error_mean", stepped=True)
     if err is not None and mean is not None:
-        parts.append(f"density error {100 * float(mean.iloc[-1]):.2g} % mean, "
-                     f"{100 * float(err.max()):.2g} % max")
+        parts.append(f"density error {100 * float(mean.iloc[-1]):.3g} % (mean, last step), "
+                     f"{100 * float(err.max()):.3g} % (largest)")
     cover = column("cloud_cover")
     if cover is not None and math.isfinite(float(cover.max())) and float(cover.max()) > 0:
         parts.append(f"cloud cover {float(cover.iloc[-1]):.2f} at the end ({float(cover.max()):.2f} at most)")

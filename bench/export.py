@@ -298,7 +298,10 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
                     fh.flush()
                     os.fsync(fh.fileno())
             else:
-                ds.to_zarr(stage, mode="w")
+                import warnings
+                with warnings.catch_warnings():      # zarr 3 notes that consolidated metadata is its own extension
+                    warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+                    ds.to_zarr(stage, mode="w")
     return target / f"{name}.pvd" if fmt in ("vtu", "vtp") else target
 
 
