@@ -139,8 +139,14 @@ def runs_prune(
     if not yes and not typer.confirm(f"remove these {len(plan)} folder(s), {total}?", default=False):
         typer.echo("nothing removed")
         raise typer.Exit(1)
-    prune_runs(root, chosen, None if older_than is None else older_than * 86400, quarantine, dry_run=False)
-    typer.echo(f"removed {len(plan)} folder(s), {total}")
+    done, failed = prune_runs(root, chosen, None if older_than is None else older_than * 86400, quarantine,
+                              dry_run=False)
+    typer.echo(f"removed {len(done)} folder(s), {human_bytes(sum(size for _, size, _ in done))}")
+    failed = [line for line in failed if "could not be removed" in line]
+    if failed:
+        for line in failed:
+            typer.echo(f"  not removed: {line}", err=True)
+        raise typer.Exit(2)
 
 
 def physics_lines(path: Path, info: dict) -> list[str]:

@@ -47,7 +47,7 @@ import numpy as np
 from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
 from bench.store.manifest import read_result, verify_run
 from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
-from bench.store.targets import NETCDF_ATTR, ExportError, check_free_space, marker_of, staged
+from bench.store.targets import NETCDF_ATTR, ExportError, check_free_space, disk_error, marker_of, staged
 from pbf_cuda.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
 
 __all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "ExportError", "particles_to_xarray", "run_to_xarray",
@@ -233,7 +233,10 @@ def _target(run_dir: Path, out, name: str, fmt: str, record: dict) -> Path:
         folder = run_dir / "export"
         if entry_kind(folder) not in (None, "dir"):
             raise ExportError(f"{folder}: is not a folder; give --out")
-        folder.mkdir(exist_ok=True)
+        try:
+            folder.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise ExportError(f"{disk_error(exc, folder)} (give --out)") from None
         return folder / filename
     out = Path(out)
     if out.is_dir() and not _same_export(marker_of(out), record):

@@ -190,7 +190,8 @@ def prune_runs(root: Path, statuses: set[str], older_than_s: float | None, quara
                dry_run: bool = True) -> tuple[list[tuple[Path, int, str]], list[str]]:
     """What `cloudpbf runs prune` removes: runs whose status is in `statuses` (and older than `older_than_s`
     when given), and every quarantine folder when `quarantine`.  Runs being written (locked) are skipped.
-    Returns ([(path, bytes, why)], [skipped lines]); removes them unless `dry_run`."""
+    Returns ([(path, bytes, why)], [skipped lines]); removes them unless `dry_run` (then a folder that cannot
+    be removed is a skipped line, the others are removed)."""
     chosen, skipped = [], []
     for entry in list_runs(root):
         if entry.status not in statuses or (older_than_s is not None and entry.age_s < older_than_s):
@@ -203,6 +204,12 @@ def prune_runs(root: Path, statuses: set[str], older_than_s: float | None, quara
         chosen.extend((p, folder_bytes(p) if entry_kind(p) == "dir" else 0, "quarantine")
                       for p in quarantine_folders(root))
     if not dry_run:
-        for path, _, _ in chosen:
-            remove_entry(path)
+        removed = []
+        for item in chosen:
+            try:
+                remove_entry(item[0])
+                removed.append(item)
+            except OSError as exc:
+                skipped.append(f"{item[0]}: could not be removed ({exc.strerror or exc})")
+        chosen = removed
     return chosen, skipped
