@@ -139,7 +139,21 @@ def test_verdict_interpolates_wall_time_at_equal_error():
     out = sweep.verdict(pd.DataFrame(rows))
     (cmp,) = out["comparisons"]
     assert cmp["wall_non_adaptive_s"] == pytest.approx(6.0) and cmp["speedup"] == pytest.approx(2.0)
-    assert out["verdict"].startswith("at equal error, adaptive runs are 2.00x faster")
+    # one comparison is one wall-clock ratio: no interval, so no difference is claimed
+    assert out["verdict"].startswith("no difference measured: one comparison at equal error (2.00x")
+    assert out["speedup_interval"] is None and out["no_difference"]
+
+
+def test_sweep_speedups_need_an_interval_that_excludes_one():
+    noisy = sweep.speedup_summary([2.00, 0.82, 0.98])                      # the demo's three single ratios
+    assert noisy["no_difference"] and noisy["verdict"].startswith("no difference measured: at equal error")
+    lo, hi = noisy["speedup_interval"]
+    assert lo < 1 < hi and noisy["speedup"] == pytest.approx((2.0 * 0.82 * 0.98) ** (1 / 3))
+    clear = sweep.speedup_summary([1.9, 2.0, 2.1, 2.05])
+    assert not clear["no_difference"] and clear["speedup_interval"][0] > 1
+    assert clear["verdict"].startswith("at equal error, adaptive runs are 2.01x faster than non-adaptive runs")
+    slower = sweep.speedup_summary([0.5, 0.52, 0.49])
+    assert "x slower" in slower["verdict"] and not slower["no_difference"]
 
 
 def test_largest_stable_dt_stops_at_the_first_failure():
@@ -227,11 +241,19 @@ def test_usable_is_stable_and_accurate():
                           "stable": [True, True, True, True, False],
                           "density_error_mean": [0.001, 0.002, 0.004, 0.5, 0.9],
                           "density_error_max": [0.002, 0.009, 0.02, 0.6, None],
-                          "energy_jump": [1.0, 1.1, 1.2, 1.3, 9.0]})
+                          "energy_jump": [1.0, 1.1, 1.2, 1.3, 9.0],
+                          "reference_error": [0.01, 0.05, 0.02, 0.04, 0.0]})
     usable = stress.usable_mask(frame)
     assert usable.tolist() == [True, True, False, False, False]   # 4 s: its worst step exceeds 1%
     jumpy = frame.assign(energy_jump=[1.0, 3.0, 1.0, 1.0, 1.0])
     assert stress.usable_mask(jumpy).tolist() == [True, False, False, False, False]
+    # density error alone does not make a case usable: it needs the converged reference's agreement
+    far = frame.assign(reference_error=[0.01, 0.5, 0.02, 0.04, 0.0])
+    assert stress.usable_mask(far).tolist() == [True, False, False, False, False]
+    assert not stress.usable_mask(frame.drop(columns="reference_error")).any()
+    assert stress.usable_mask(frame.drop(columns="reference_error"), reference_limit=None).tolist()[:2] == [True, True]
+    # a row marked unstable is never usable, whatever its other columns say
+    assert not stress.usable_mask(frame.assign(stable=False)).any()
     out = stress.largest_stable_dt(frame.assign(usable=usable))
     assert (out["largest_usable_dt"], out["smallest_unusable_dt"]) == (2.0, 4.0)
     assert (out["largest_stable_dt"], out["smallest_unstable_dt"]) == (8.0, 16.0)
@@ -279,7 +301,18 @@ def test_table1_row_is_ms_per_step_without_double_counting():
         ("growing", "5b", "adaptive", "", 1234)
     paper_total = 628.78 + 64.55 + 12.50 + 6.10 + 23.71                  # the paper's row 5b
     assert row["paper_total_ms"] == pytest.approx(paper_total) and row["paper_max_particles"] == 540000
-    assert row["speedup_vs_paper"] == pytest.approx(paper_total / 12.9)
+    # below the gpu scale (and at 1,234 particles against the paper's 540,000) no speed-up: throughput
+    assert row["speedup_vs_paper"] is None and row["particle_steps_per_s"] == pytest.approx(1234 * 1e3 / 12.9)
+    gpu = SimpleNamespace(commit="abc", scale=SCALES["gpu"])
+    assert table1_row((example, figure, mode, "", load_scene(name)), spec, result, gpu)["speedup_vs_paper"] is None
+    matched = SimpleNamespace(**{**vars(result), "max_particles": 500_000})
+    row = table1_row((example, figure, mode, "", load_scene(name)), spec, matched, gpu)
+    assert row["speedup_vs_paper"] == pytest.approx(paper_total / 12.9)           # 500k against 540k: within 20%
+    assert np.isnan(row["step_ms_median"])                                         # no per-step times recorded
+    timed = pd.DataFrame({"step": range(1, 13), "wall_ms": [50.0] * 2 + [10.0] * 9 + [30.0]})
+    row = table1_row((example, figure, mode, "", load_scene(name)), SimpleNamespace(**{**vars(spec), "warmup_steps": 2}),
+                     SimpleNamespace(**{**vars(result), "steps_table": lambda: timed}), ctx)
+    assert row["step_ms_median"] == 10.0 and row["timed_steps"] == 10 and row["step_ms_p95"] > 10.0
 
 
 @pytest.mark.parametrize("best, expected", [
@@ -465,3 +498,20 @@ def test_studies_run_inline_without_dask_and_say_so(tmp_path, monkeypatch):
     with pytest.raises(click.exceptions.BadParameter, match="pip install distributed"):
         with refusals():
             asked.client()
+
+
+def test_stress_reference_is_the_same_scene_converged_and_catches_a_collapse():
+    base = scale_scene(load_scene("growing"), 3000).replace(**{"time.steps": 10, "time.snapshot_every": 10})
+    specs = [runs.RunSpec("particles", base.replace(**{"time.dt": 8.0, "pbf.iterations": it}), seed=0,
+                          record_steps=True, diagnostics=False, keep_snapshots=0) for it in (1, 4)]
+    refs = [stress.reference_spec(spec) for spec in specs]
+    assert refs[0].key() == refs[1].key()                        # cases differing in iterations share a reference
+    ref = refs[0].scene
+    assert ref.time.dt == 8.0 / stress.REFERENCE_DT_DIVISOR and ref.pbf.iterations == stress.REFERENCE_ITERATIONS
+    assert ref.time.dt * ref.time.steps == 8.0 * 10                 # the same simulated time
+    reference = pd.DataFrame({"mass_centre_height": [800.0, 801.0], "mean_temperature": [290.0, 291.0]})
+    close = pd.DataFrame({"mass_centre_height": [801.0, 805.0], "mean_temperature": [290.0, 291.05]})
+    collapsed = pd.DataFrame({"mass_centre_height": [10.0, 0.0], "mean_temperature": [290.0, 291.0]})
+    assert stress.reference_error(close, reference, 100.0) == pytest.approx(0.05)   # 4 m of 100 m; 0.05 K of 1 K
+    assert stress.reference_error(collapsed, reference, 100.0) > 1.0             # the mass centre fell 8 spacings
+    assert np.isnan(stress.reference_error(close.iloc[:0], reference, 100.0))

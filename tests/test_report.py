@@ -93,6 +93,11 @@ def write_synthetic_study(out, renders=True):
         sweep.append(("grid", "grid", "cells", cells, 0.01 * cells**1.5, err, err + 0.15))
     pd.DataFrame(sweep, columns=["method", "mode", "parameter", "value", "wall_s", "error_self", "error_other"]).assign(
         device=DEVICE, commit=COMMIT).to_csv(data / "sweep.csv", index=False)
+    (data / "sweep_verdict.json").write_text(json.dumps({   # the demo's three single wall-clock ratios
+        "metric": "error_self", "verdict": "at equal error, adaptive runs are 1.02x slower than non-adaptive runs",
+        "comparisons": [{"error": e, "speedup": r} for e, r in ((0.3, 2.0), (0.2, 0.82), (0.1, 0.98))],
+        "non_adaptive": [{"wall_s": 8.0, "error_self": 0.05}, {"wall_s": 1.0, "error_self": 0.3}],
+        "adaptive": [{"wall_s": 4.8, "error_self": 0.05}]}))
     # adaptive-pareto: uniform runs on a power-law front, two adaptive variants, the reference
     from bench.studies.adaptive_pareto import time_at_error  # noqa: F401  (the study's module imports cleanly)
     configs = [("uniform-68m", "uniform", "", 68.0, 1e5, 5.0, 0.27), ("uniform-54m", "uniform", "", 54.0, 2e5, 6.4, 0.21),
@@ -218,31 +223,36 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["environment", "summary", "table1", "phases", "scaling", "benchmark_history", "peers", "adaptive",
+    assert expected == ["summary", "table1", "phases", "scaling", "benchmark_history", "peers", "adaptive",
                         "compare", "shallow_cumulus", "sweep",
-                        "adaptive_pareto", "stress", "renders", "figure1", "figure3"]
-    # self-contained: only in-page anchors and embedded images; no path of this machine
+                        "adaptive_pareto", "stress", "renders", "figure1", "figure3", "environment"]
+    # offline: in-page anchors, embedded images and files beside the page (data, full-size figures); no URL,
+    # no path of this machine
     assert not re.search(r"https?://", page)
-    assert all(r.startswith("#") or r.startswith(("data:image/png;base64,", "data:image/gif;base64,"))
-               for r in parser.refs), parser.refs
+    for ref in parser.refs:
+        if ref.startswith("#") or ref.startswith(("data:image/png;base64,", "data:image/gif;base64,",
+                                                  "data:image/jpeg;base64,")):
+            continue
+        assert (out / ref).is_file() and (out / ref).resolve().is_relative_to(out.resolve()), ref
     assert str(out) not in page and str(out.parent) not in page
-    assert parser.images == 21   # every figure and render of the synthetic study, the 2-D map and the animation
+    assert parser.images == 25   # every figure and render, the 2-D map, the animation and four verdict cards
     sections = _sections(page)
     for sid in expected:
         assert "not run in this study" not in sections[sid], sid
         assert "could not build" not in sections[sid], sid
     # the numbers in the page come from the data
-    assert DEVICE in sections["environment"] and COMMIT in sections["table1"]
-    assert "1087" in sections["table1"]                       # paper's pbf ms beside ours
-    assert "1.657" in sections["table1"]                      # paper speedup growing: 1218.95 / 735.64
-    assert "scaled down" in sections["table1"]                # cpu-smoke labelled
-    # usable: density error <= 1% (0.5 and 2 s); stable: up to 8 s
-    assert ("Largest usable dt (density error &lt;= 1%): 2 s; largest stable dt (no blow-up, accuracy aside): 8 s"
-            in sections["stress"])
+    assert DEVICE in sections["environment"] and COMMIT[:7] in sections["table1"]
+    assert "needs the gpu scale" in sections["table1"]          # cpu-smoke: throughput, no paper comparison
+    assert "1087" not in sections["table1"] and "speed-up" not in sections["table1"]
+    assert "1.657" in sections["adaptive"]                      # the paper's step-time ratio growing: 1218.95 / 735.64
+    # no converged-reference check in this stress.csv: nothing is called usable
+    assert ("Largest usable dt: not determined (no converged-reference check in this data); largest stable dt "
+            "(no blow-up, accuracy aside): 8 s" in sections["stress"])
     assert "40 ids: 100 101 102 …" in sections["stress"] and "120 121" not in sections["stress"]
     assert "velocity bound exceeded" in sections["stress"]
-    # sweep verdict at equal error 0.05: adaptive 0.6 * (100/50)^3 = 4.8 s, non-adaptive 8 s
-    assert "adaptive needs 4.8 s and non-adaptive 8 s: adaptive is 1.67x faster" in sections["sweep"]
+    # the sweep verdict: three single ratios whose interval holds 1
+    assert "no difference measured: at equal error the adaptive runs&#39; speed-ups are 2.00x, 0.82x, 0.98x" in sections[
+        "sweep"]
     # adaptive-pareto: the stable-seed rule of the verdict is stated, and what it left out is drawn apart
     assert "use only configurations stable in at least 3 seeds" in sections["adaptive_pareto"]
     assert "open markers: left out of the verdict" in sections["adaptive_pareto"]
@@ -250,12 +260,40 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
         "adaptive_pareto"]
 
 
-def test_table1_speedups_are_computed_from_the_rows(full_report):
+def test_table1_below_the_gpu_scale_shows_throughput_and_no_paper_ratio(full_report):
     table1 = _sections(full_report[1])["table1"]
-    # growing: non-adaptive 35 ms, adaptive 19.1 ms -> 1.832x
-    assert f"{35.0 / 19.1:.4g}" in table1
-    # paper / measured for the growing non-adaptive row: (1087.36 + 112.35 + 19.24) / 35
-    assert f"{(1087.36 + 112.35 + 19.24) / 35.0:.4g}" in table1
+    heads = re.findall(r"<th>([^<]*)</th>", table1)
+    assert heads[:5] == ["example", "mode", "particles", "total ms", "particle-steps/s"]
+    assert not any("paper" in h for h in heads)
+    assert f"{4096 * 1e3 / 35.0:.4g}" in table1                # growing non-adaptive: 4096 particles / 35 ms
+
+
+def _gpu_table1(tmp_path, counts):
+    """A gpu-scale table1.csv with the given max_particles per row (growing, cycling x non-adaptive, adaptive)."""
+    data = tmp_path / "data"
+    data.mkdir()
+    pd.DataFrame({"example": ["growing", "growing", "cycling", "cycling"], "figure": ["5a", "5b", "5c", "5d"],
+                  "mode": ["non-adaptive", "adaptive"] * 2, "variant": "", "max_particles": counts,
+                  "pbf_ms": [3.5, 1.2, 4.1, 3.1], "total_ms": [3.8, 1.4, 4.4, 3.45], "scale": "gpu",
+                  "device": "NVIDIA H100", "commit": COMMIT}).to_csv(data / "table1.csv", index=False)
+    return _sections(build_report(tmp_path).read_text())
+
+
+def test_table1_speedup_against_the_paper_only_where_particle_counts_match(tmp_path):
+    """gpu scale: the growing adaptive row holds 128k particles against the paper's 540k, so its comparison is a
+    ratio of throughputs; the rows within 20% of the paper's counts get a speed-up."""
+    sections = _gpu_table1(tmp_path, [830584, 128445, 941192, 493821])
+    card = sections["summary"][sections["summary"].index('id="card-table1"'):]
+    card = card[:card.index('id="card-adaptive_front"')]
+    assert f"growing non-adaptive {1218.95 / 3.8:.3g}x" in card and f"cycling adaptive {865.57 / 3.45:.3g}x" in card
+    assert "growing adaptive " + f"{128445:,}" + f" against {540000:,} particles" in card
+    throughput = (128445 / 1.4) / (540000 / 735.64)
+    assert f"{throughput:.3g}x the paper&#39;s throughput" in card
+    assert "growing adaptive 5" not in card                                   # never a speed-up for that row
+    assert "mean over the timed steps; per-step spread not recorded" in card
+    table1 = sections["table1"]
+    assert "speed-up vs paper (same counts)" in table1 and "throughput vs paper (other counts)" in table1
+    assert f"{1218.95 / 3.8:.4g}" in table1 and f"{735.64 / 1.4:.4g}" not in table1
 
 
 @pytest.mark.parametrize("lock,expected,absent", [
@@ -434,29 +472,55 @@ def test_failed_study_is_shown_in_its_sections(tmp_path):
 # --------------------------------------------------------------------------------------------
 # the page at a glance: summary, confidence intervals, tests, zoomable figures, the registry
 # --------------------------------------------------------------------------------------------
-def test_summary_answers_first_from_the_data(full_report):
-    sections = _sections(full_report[1])
-    summary = sections["summary"]
-    # Table 1: growing non-adaptive 35 ms against the paper's 1218.95 ms
-    assert "growing non-adaptive: 35 ms (paper 1.22e+03 ms, 34.8x faster)" in summary
-    assert "scaled-down CPU runs" in summary
-    # the adaptive speed-up is quoted with the error it holds at, never alone
-    assert ("growing: best adaptive variant (lookahead-68m) 1.60x faster than uniform particles at equal error "
-            "0.15 (seed spread 0.02, seed-noise floor 0.02): 4.5 against 7.2 ms per step "
-            "(stable in 3 of 3 seeds), 5-95% over resampled seeds 1.30-1.90x") in summary
-    # particles against grid: the final cover's seed mean (95% interval) for both
-    assert "final cloud cover, particles non-adaptive 0.25 (n=5) against grid 0.25 (n=5)" in summary
-    assert "Largest usable dt (density error &lt;= 1%): 2 s" in summary
-    for target in ("table1", "adaptive_pareto", "compare", "stress"):
-        assert f'href="#{target}"' in summary
-    assert full_report[1].index('id="summary"') < full_report[1].index('id="table1"')
+def test_first_screen_is_verdict_cards_from_the_data(full_report):
+    page = full_report[1]
+    summary = _sections(page)["summary"]
+    cards = re.findall(r'<div class="card (\w+)" id="card-([\w_]+)">', summary)
+    assert [c for _, c in cards] == ["table1", "adaptive_front", "compare", "stress"]    # no time-to-solution data
+    assert summary.count("<img ") == 4
+    # Table 1 at the cpu-smoke scale: throughput, and the plain statement that the paper needs the gpu scale
+    assert "Throughput at the cpu-smoke scale" in summary and "needs the gpu scale" in summary
+    assert "faster than the paper" not in summary
+    # the adaptive speed-up: with its interval and the error it holds at
+    assert "best variant lookahead-68m 1.60x faster [1.30, 1.90] at equal error 0.15" in summary
+    # particles against grid: the difference of the final covers with its Welch interval
+    assert "Final cloud cover, particles minus grid: non-adaptive" in summary and "Welch 95% interval" in summary
+    assert "Largest usable dt: not determined" in summary
+    for href in ("#table1", "#adaptive_pareto", "#compare", "#stress", "data/table1.csv", "data/stress.csv",
+                 "data/adaptive_verdict.json", "data/compare_timeseries.csv"):
+        assert f'href="{href}"' in summary, href
+    assert page.index('id="summary"') < page.index('id="table1"') < page.index('id="environment"')
+    assert page.index('<section id="environment"') > page.index('<section id="figure3"')   # the environment last
 
 
-def test_table1_total_against_paper_comes_before_the_phase_columns(full_report):
-    table1 = _sections(full_report[1])["table1"]
-    heads = re.findall(r"<th>([^<]*)</th>", table1)
-    assert heads[:5] == ["example", "mode", "total ms", "total ms (paper)", "paper / measured"]
-    assert heads.index("pbf ms") > heads.index("adaptive speedup")
+def test_header_names_every_device_commit_and_scale_of_the_sections(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    pd.DataFrame({"example": ["growing"], "mode": ["non-adaptive"], "max_particles": [830584], "total_ms": [3.8],
+                  "scale": "gpu", "device": "NVIDIA H100", "commit": "85a3f32c33e1"}).to_csv(data / "table1.csv",
+                                                                                          index=False)
+    pd.DataFrame({"cells": [32**3, 64**3], "step_ms": [1.0, 6.0], "dtype": "float32", "device": DEVICE,
+                  "commit": COMMIT}).to_csv(data / "grid_scaling.csv", index=False)
+    (data / "environment.json").write_text(json.dumps({"device": "NVIDIA H200", "commit": "2b95a7f", "scale": "cpu"}))
+    page = build_report(tmp_path).read_text()
+    header = page[page.index("<header>"):page.index("</header>")]
+    for text in ("NVIDIA H100", DEVICE, "85a3f32", COMMIT[:7], ">gpu<", ">not recorded<"):
+        assert text in header, text
+    assert "NVIDIA H200" not in header and "2b95a7f" not in header       # environment.json's, no section's data
+    assert "Which sections come from which device" in header
+
+
+def test_a_time_to_solution_card_appears_when_its_data_exists(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "sweep.csv").write_text("method\nparticles\n")
+    before = _sections(build_report(tmp_path).read_text())["summary"]
+    assert "card-time_to_solution" not in before
+    (tmp_path / "data" / "time_to_solution.json").write_text(json.dumps({
+        "answer": "particles reach the grid's cover error 2.1x sooner", "interval": [1.4, 3.0],
+        "files": ["sweep.csv"]}))
+    summary = _sections(build_report(tmp_path).read_text())["summary"]
+    assert 'id="card-time_to_solution"' in summary and "2.1x sooner" in summary and "Interval: 1.4-3." in summary
+    assert 'href="data/time_to_solution.json"' in summary and 'href="data/sweep.csv"' in summary
 
 
 def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):
@@ -480,10 +544,11 @@ def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):
 
 def test_every_figure_opens_full_size(full_report):
     page = full_report[1]
-    figures = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)
-    assert len(figures) == page.count("<img ") == 21
-    assert all(fid == href for fid, href in figures)
-    assert len({fid for fid, _ in figures}) == len(figures)          # one anchor per figure
+    zoom = re.findall(r'<figure class="zoom" id="([^"]+)"><a href="#([^"]+)"[^>]*><img ', page)
+    full = re.findall(r'<figure class="full" id="([^"]+)"><a href="([^"#]+)"[^>]*><img ', page)
+    assert len(zoom) + len(full) + 4 == page.count("<img ") == 25     # the four cards' figures are not zoomed
+    assert all(fid == href for fid, href in zoom)
+    assert all((full_report[0] / href).is_file() for _, href in full)
     assert "figure.zoom:target" in page
 
 
@@ -608,7 +673,7 @@ def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there
     pd.DataFrame(rows).to_csv(out / "data" / "convergence.csv", index=False)
     after = _sections(build_report(out).read_text())["compare"]
     assert after.count("<img") == before.count("<img") + 1
-    assert "Convergence in the full domain (convergence.csv" in after and COMMIT in after
+    assert "Convergence in the full domain (convergence.csv" in after and COMMIT[:7] in after
 
 
 def test_shallow_cumulus_section_shows_the_statistics_beside_the_les_cases_and_the_renders(full_report):
@@ -651,8 +716,9 @@ def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(t
         plt.close(fig)
     compare = _sections(build_report(out).read_text())["compare"]
     assert compare.count("<img") == before + 1 and "Fig. 5c/d" in compare
-    uri = re.search(r'src="data:image/png;base64,([^"]+)"[^>]*>(?:(?!<img).)*Fig\. 5c/d', compare, re.S).group(1)
-    picture = plt.imread(io.BytesIO(base64.b64decode(uri)))
+    uri = re.search(r'src="data:image/\w+;base64,([^"]+)"[^>]*>(?:(?!<img).)*Fig\. 5c/d', compare, re.S).group(1)
+    from PIL import Image
+    picture = np.asarray(Image.open(io.BytesIO(base64.b64decode(uri))))
     assert picture.shape[0] > 0.5 * picture.shape[1]          # two rows (the grid row is left out)
     assert picture.shape[0] < 1.0 * picture.shape[1]          # (three rows would be taller than wide)
 
@@ -660,14 +726,16 @@ def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(t
 def test_table1_shows_the_best_variant_row_beside_the_paper_rows(tmp_path):
     """A fifth Table 1 row (the adaptive study's best variant) is drawn as 'adaptive (name)', compared with the
     paper's adaptive row and its example's non-adaptive row, and leaves the paper rows' speed-ups alone."""
-    from bench.report.build import _adaptive_speedups
+    from bench.report.build import step_time_ratios
     rows = pd.DataFrame({"example": ["growing"] * 3, "mode": ["non-adaptive", "adaptive", "adaptive"],
                          "variant": ["", "", "thermal-68m"], "total_ms": [8.0, 4.0, 5.0]})
-    assert _adaptive_speedups(rows) == {"growing": 2.0}
+    assert step_time_ratios(rows) == {"growing": 2.0}
     data = tmp_path / "data"
     data.mkdir()
     rows.assign(figure=["5a", "5b", "5b"], max_particles=[830584, 176488, 140000], pbf_ms=[7.0, 3.0, 4.0],
                 device=DEVICE, commit=COMMIT).to_csv(data / "table1.csv", index=False)
     html = build_report(tmp_path).read_text()
-    table1 = _sections(html)["table1"]
-    assert "adaptive (thermal-68m)" in table1 and f"{8.0 / 5.0:.4g}" in table1 and f"{2.0:.4g}" in table1
+    sections = _sections(html)
+    assert "adaptive (thermal-68m)" in sections["table1"] and f"{1e3 * 140000 / 5.0:.4g}" in sections["table1"]
+    assert "step-time ratio non-adaptive / adaptive" in sections["adaptive"] and "<td>2</td>" in sections["adaptive"]
+    assert "speedup" not in sections["adaptive"]

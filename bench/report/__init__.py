@@ -1,11 +1,13 @@
-"""The HTML report: ``build_report(OUT)`` turns OUT/data into one self-contained OUT/index.html."""
-from . import build as _build
-from .build import COMMANDS, build_report, report_sections
+"""The HTML report: ``build_report(OUT)`` turns OUT/data into OUT/index.html.
+
+The package's names load lazily, so a study can use ``bench.report.inference`` (scipy only) without importing
+matplotlib and jinja2 with the page's builders."""
 
 __all__ = ["build_report", "report_sections", "SECTIONS", "COMMANDS"]
 
 
 def __getattr__(name):
-    if name == "SECTIONS":   # (id, title) of every section, in page order, from the study registry
-        return _build.SECTIONS
+    if name in __all__:   # SECTIONS: (id, title) of every section, in page order, from the study registry
+        from . import build
+        return getattr(build, name)
     raise AttributeError(name)

@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-__all__ = ["Interval", "mean_ci", "format_ci", "welch", "LEVEL"]
+__all__ = ["Interval", "mean_ci", "format_ci", "welch", "difference_ci", "ratio_ci", "describes_no_difference",
+           "median_spread", "LEVEL"]
 
 LEVEL = 0.95
 """Confidence level of every interval in the report."""
@@ -80,3 +81,50 @@ def welch(a, b) -> tuple[float, float]:
         warnings.simplefilter("ignore", RuntimeWarning)
         res = stats.ttest_ind(x, y, equal_var=False)
     return float(res.statistic), float(res.pvalue)
+
+
+def difference_ci(a, b, level: float = LEVEL) -> Interval:
+    """mean(a) - mean(b) and its Welch `level` interval (unequal variances, Welch-Satterthwaite degrees of
+    freedom); the interval is NaN where either side has fewer than two finite values."""
+    x, y = _finite(a), _finite(b)
+    if not len(x) or not len(y):
+        return Interval(math.nan, math.nan, math.nan, 0)
+    diff = float(x.mean() - y.mean())
+    if len(x) < 2 or len(y) < 2:
+        return Interval(diff, math.nan, math.nan, min(len(x), len(y)))
+    va, vb = x.var(ddof=1) / len(x), y.var(ddof=1) / len(y)
+    if va + vb == 0.0:
+        return Interval(diff, diff, diff, min(len(x), len(y)))
+    dof = (va + vb) ** 2 / (va ** 2 / (len(x) - 1) + vb ** 2 / (len(y) - 1))
+    half = float(stats.t.ppf(0.5 + level / 2, dof)) * math.sqrt(va + vb)
+    return Interval(diff, diff - half, diff + half, min(len(x), len(y)))
+
+
+def ratio_ci(ratios, level: float = LEVEL) -> Interval:
+    """The geometric mean of positive ratios (speed-ups) and its `level` t-interval, taken on their logarithms
+    (a ratio of 2 and one of 1/2 average to 1); NaN bounds for fewer than two ratios."""
+    r = _finite(ratios)
+    r = r[r > 0]
+    if not len(r):
+        return Interval(math.nan, math.nan, math.nan, 0)
+    logs = mean_ci(np.log(r), level)
+    if logs.n < 2:
+        return Interval(math.exp(logs.mean), math.nan, math.nan, logs.n)
+    return Interval(math.exp(logs.mean), math.exp(logs.lo), math.exp(logs.hi), logs.n)
+
+
+def describes_no_difference(interval: Interval, null: float = 1.0) -> bool:
+    """True where the interval holds `null` (1 for a ratio, 0 for a difference) or is unknown: the data then
+    measured no difference."""
+    if not (math.isfinite(interval.lo) and math.isfinite(interval.hi)):
+        return True
+    return interval.lo <= null <= interval.hi
+
+
+def median_spread(values) -> tuple[float, float, float, int]:
+    """(median, 5th percentile, 95th percentile, n) of the finite values (NaN for none)."""
+    a = _finite(values)
+    if not len(a):
+        return math.nan, math.nan, math.nan, 0
+    lo, med, hi = np.percentile(a, [5, 50, 95])
+    return float(med), float(lo), float(hi), len(a)

@@ -412,10 +412,11 @@ def stability_map(df: pd.DataFrame) -> str:
 MAP_AXES = {"iterations": "PBF solver iterations", "heating_rate": "ground heating rate S$_e$ (K/s, eq. 5)"}
 
 
-def stability_map_2d(df: pd.DataFrame, density_limit: float, energy_limit: float | None = None) -> str:
+def stability_map_2d(df: pd.DataFrame, bound: str, energy_limit: float | None = None) -> str:
     """One panel per 2-D map (parameter "dt x <other>"): cells on the (dt, other) grid coloured by the
     largest per-step mean density error (log), red X where the run blew up, and a thick black line
-    around the usable cells (stable, density error <= density_limit, energy jumps within energy_limit)."""
+    around the usable cells (the boolean ``usable`` column, never set on an unstable run); `bound` says what
+    usable means (bench.studies.stress.usable_bound_text)."""
     maps = [p for p in dict.fromkeys(df["parameter"]) if isinstance(p, str) and p.startswith("dt x ")]
     fig, axes = plt.subplots(1, len(maps), figsize=(5.8 * len(maps) + 1.2, 4.6), squeeze=False,
                              layout="constrained")
@@ -434,8 +435,7 @@ def stability_map_2d(df: pd.DataFrame, density_limit: float, energy_limit: float
             e = pd.to_numeric(getattr(r, err_col), errors="coerce")
             stable = _truthy(r.stable)
             err[i, j] = max(float(e), 1e-5) if stable and np.isfinite(e) else np.nan
-            usable[i, j] = bool(getattr(r, "usable", False)) if hasattr(r, "usable") else (
-                stable and np.isfinite(e) and e <= density_limit)
+            usable[i, j] = stable and _truthy(getattr(r, "usable", False))
             if not stable:
                 ax.plot(j, i, "X", color="#d62728", ms=14)
             elif np.isfinite(e):
@@ -461,9 +461,8 @@ def stability_map_2d(df: pd.DataFrame, density_limit: float, energy_limit: float
     if image is not None:
         bar = fig.colorbar(image, ax=axes[0].tolist(), shrink=0.9)
         bar.set_label("largest mean density error |rho/rho0 - 1| over the steps")
-    limits = f"density error <= {100 * density_limit:g}%" + (
-        f", no step more than {energy_limit:g}x the kinetic energy" if energy_limit else "")
-    fig.suptitle(f"inside the black line: usable ({limits}); red X: blew up", fontsize=10)
+    import textwrap
+    fig.suptitle(textwrap.fill(f"inside the black line: usable ({bound}); red X: blew up", 110), fontsize=9)
     return to_data_uri(fig)
 
 

@@ -14,15 +14,22 @@ Two 2-D maps follow: dt against the PBF iterations (parameter "dt x iterations")
 heating rate (parameter "dt x heating_rate", multiples of the scene's rate); each case's row carries
 its dt, iterations and heating rate.
 
-Stable is not usable: a run can end without blowing up while its density constraint (eq. 1) is
-violated by more than the method tolerates.  A case is **usable** when it is stable, its mean density
+Stable is not usable: a run can end without blowing up while it no longer solves the scene (a fluid
+collapsed onto the floor holds no density error at all).  A case is **usable** when it is stable, its
+result is within REFERENCE_ERROR_LIMIT of a converged reference of the same scene, its mean density
 error |rho/rho0 - 1| stayed at most DENSITY_ERROR_LIMIT over every step, and no step multiplied the
-kinetic energy by more than ENERGY_JUMP_LIMIT (the runaway that precedes a blow-up; physical
-growth from the heating is far slower per step).
+kinetic energy by more than ENERGY_JUMP_LIMIT (the runaway that precedes a blow-up; physical growth
+from the heating is far slower per step).  The reference is the case's scene at dt / REFERENCE_DT_DIVISOR
+with REFERENCE_ITERATIONS PBF iterations over the same simulated time (one reference serves every case
+that differs only in its iterations); it is run for the cases that pass the other checks.  The error
+(``reference_error``, :func:`reference_error`) is the larger of the mass centre's distance from the
+reference's in particle spacings and the mean temperature's distance from the reference's relative to the
+reference's change of it (at least REFERENCE_TEMPERATURE_FLOOR), both at the end of the run.
 
 Outputs in OUT/data: stress.csv (parameter, value, stable, usable, reason, step, particles, max_speed,
 density_error_mean (last step), density_error_max (largest per-step mean), energy_jump (largest
-per-step kinetic-energy ratio), then the case's dt, iterations, heating_rate, phase_rate, alpha_dt,
+per-step kinetic-energy ratio), reference_error, reference_dt, reference_iterations, reference_reason
+(why a case has no reference error: not run, the reference blew up), then the case's dt, iterations, heating_rate, phase_rate, alpha_dt,
 steps, last_good_step, device, commit, run_dir) and stress_summary.json (the largest dt up to which
 every tried dt is stable, and the largest up to which every tried dt is usable).
 """
@@ -46,12 +53,44 @@ SUPERSATURATION = 1.2        # initial v / saturation of the alpha*dt cases: con
 DENSITY_ERROR_LIMIT = 0.01   # usable: mean |rho/rho0 - 1| at most 1% at every step (eq. 1)
 ENERGY_JUMP_LIMIT = 2.0      # usable: no step more than doubles the kinetic energy
 MAP_HEATING_FACTORS = (1.0, 10.0, 100.0)
+REFERENCE_DT_DIVISOR = 4       # the converged reference: dt / 4 ...
+REFERENCE_ITERATIONS = 16      # ... with 16 PBF iterations, over the same simulated time
+REFERENCE_ERROR_LIMIT = 0.1    # usable: within 10% of the reference (reference_error)
+REFERENCE_TEMPERATURE_FLOOR = 0.1   # K: the smallest temperature change the relative error divides by
+
+
+def usable_bound_text() -> str:
+    """The usable bound as the study's outputs and the report's maps state it."""
+    return (f"error against a converged reference (dt/{REFERENCE_DT_DIVISOR}, {REFERENCE_ITERATIONS} iterations, "
+            f"same simulated time) <= {REFERENCE_ERROR_LIMIT:g}, density error <= {100 * DENSITY_ERROR_LIMIT:g}% "
+            f"at every step, no step more than {ENERGY_JUMP_LIMIT:g}x the kinetic energy")
+
+
+def reference_error(steps: pd.DataFrame, reference: pd.DataFrame, spacing: float) -> float:
+    """max(|z_c - z_c,ref| / spacing, |T - T_ref| / max(|T_ref - T_ref,0|, REFERENCE_TEMPERATURE_FLOOR)) at the end of
+    both runs (z_c the mass centre's height, T the mean temperature, T_ref,0 the reference's first recorded step);
+    NaN where either run recorded neither."""
+    if not len(steps) or not len(reference):
+        return float("nan")
+    end, ref = steps.iloc[-1], reference.iloc[-1]
+    errors = []
+    if "mass_centre_height" in steps and "mass_centre_height" in reference:
+        errors.append(abs(float(end["mass_centre_height"]) - float(ref["mass_centre_height"])) / spacing)
+    if "mean_temperature" in steps and "mean_temperature" in reference:
+        change = abs(float(ref["mean_temperature"]) - float(reference["mean_temperature"].iloc[0]))
+        errors.append(abs(float(end["mean_temperature"]) - float(ref["mean_temperature"]))
+                      / max(change, REFERENCE_TEMPERATURE_FLOOR))
+    finite = [e for e in errors if e == e]
+    return max(finite) if finite else float("nan")
 
 
 def usable_mask(frame: pd.DataFrame, density_limit: float = DENSITY_ERROR_LIMIT,
-                energy_limit: float = ENERGY_JUMP_LIMIT) -> pd.Series:
-    """Stable, density error within `density_limit` (the per-step maximum where recorded, else the last
-    step's) and kinetic-energy jumps within `energy_limit` (where recorded)."""
+                energy_limit: float = ENERGY_JUMP_LIMIT, reference_limit: float | None = REFERENCE_ERROR_LIMIT
+                ) -> pd.Series:
+    """Stable, within `reference_limit` of the converged reference (``reference_error``; a case without one is not
+    usable; ``reference_limit=None`` leaves this check out, for the cases whose reference is still to run),
+    density error within `density_limit` (the per-step maximum where recorded, else the last step's) and
+    kinetic-energy jumps within `energy_limit` (where recorded). An unstable run is never usable."""
     stable = frame["stable"].astype(str).str.lower().isin(("true", "1"))
     density = pd.to_numeric(frame.get("density_error_mean", pd.Series(index=frame.index, dtype=float)),
                             errors="coerce")
@@ -61,7 +100,11 @@ def usable_mask(frame: pd.DataFrame, density_limit: float = DENSITY_ERROR_LIMIT,
     if "energy_jump" in frame.columns:
         jump = pd.to_numeric(frame["energy_jump"], errors="coerce")
         ok &= ~(jump > energy_limit)
-    return ok.fillna(False).astype(bool)
+    if reference_limit is not None:
+        error = pd.to_numeric(frame.get("reference_error", pd.Series(index=frame.index, dtype=float)),
+                              errors="coerce")
+        ok &= error <= reference_limit
+    return (ok.fillna(False) & stable).astype(bool)
 
 
 def stress_cases(base: Scene, scale) -> list[tuple[str, float, Scene]]:
@@ -111,11 +154,13 @@ def largest_stable_dt(frame: pd.DataFrame) -> dict:
     were all usable (usable_mask)."""
     dts = frame[frame.parameter == "dt"].sort_values("value")
     largest, first_bad = _largest_run(dts.value, dts.stable.astype(bool))
-    ok = dts["usable"].astype(bool) if "usable" in dts.columns else usable_mask(dts)
+    ok = (dts["usable"].astype(bool) & dts.stable.astype(bool)) if "usable" in dts.columns else usable_mask(dts)
     usable, first_unusable = _largest_run(dts.value, ok)
     return {"largest_stable_dt": largest, "smallest_unstable_dt": first_bad,
             "largest_usable_dt": usable, "smallest_unusable_dt": first_unusable,
             "density_error_limit": DENSITY_ERROR_LIMIT, "energy_jump_limit": ENERGY_JUMP_LIMIT,
+            "reference_error_limit": REFERENCE_ERROR_LIMIT, "reference_dt_divisor": REFERENCE_DT_DIVISOR,
+            "reference_iterations": REFERENCE_ITERATIONS,
             "dt_tried": dts.value.tolist()}
 
 
@@ -127,6 +172,43 @@ def _energy_jump(steps: pd.DataFrame) -> float | None:
     prev, nxt = ke[:-1], ke[1:]
     ok = (prev > 0) & pd.notna(prev) & pd.notna(nxt)
     return float((nxt[ok] / prev[ok]).max()) if ok.any() else None
+
+
+def reference_spec(spec: runs.RunSpec) -> runs.RunSpec:
+    """The converged reference of a case: its scene at dt / REFERENCE_DT_DIVISOR and REFERENCE_ITERATIONS PBF
+    iterations over the same simulated time (the same spec for cases that differ only in their iterations)."""
+    scene = spec.scene
+    steps = scene.time.steps * REFERENCE_DT_DIVISOR
+    ref = scene.replace(**{"time.dt": scene.time.dt / REFERENCE_DT_DIVISOR, "time.steps": steps,
+                           "time.snapshot_every": steps, "pbf.iterations": REFERENCE_ITERATIONS})
+    return runs.RunSpec("particles", ref, backend=spec.backend, seed=spec.seed, record_steps=True, diagnostics=False,
+                        keep_snapshots=0)
+
+
+def _add_reference_errors(ctx: StudyContext, frame: pd.DataFrame, plan, results) -> None:
+    """Run the references of the cases that pass every other check (one per distinct reference spec) and fill
+    reference_error, reference_dt, reference_iterations and reference_reason."""
+    candidates = usable_mask(frame, reference_limit=None)
+    wanted = {}
+    for i, ((_, _, spec), ok) in enumerate(zip(plan, candidates)):
+        if ok:
+            ref = reference_spec(spec)
+            wanted.setdefault(ref.key(), (ref, []))[1].append(i)
+    frame["reference_error"] = float("nan")
+    frame["reference_dt"] = [spec.scene.time.dt / REFERENCE_DT_DIVISOR for _, _, spec in plan]
+    frame["reference_iterations"] = REFERENCE_ITERATIONS
+    frame["reference_reason"] = ["" if ok else "not run: the case failed another check" for ok in candidates]
+    if not wanted:
+        return
+    refs = ctx.run_parallel([ref for ref, _ in wanted.values()], "stress references")
+    for (ref, cases), res in zip(wanted.values(), refs):
+        for i in cases:
+            if not res.stable:
+                frame.loc[i, "reference_reason"] = f"the reference blew up: {res.reason}"
+                continue
+            spec = plan[i][2]
+            frame.loc[i, "reference_error"] = reference_error(results[i].steps_table(), res.steps_table(),
+                                                              spec.scene.particles.spacing)
 
 
 def run_stress(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
@@ -150,11 +232,15 @@ def run_stress(ctx: StudyContext, scene_name: str = SCENE) -> pd.DataFrame:
             "n_particles": res.max_particles, "last_good_step": res.last_good_step, "device": res.device,
             "commit": ctx.commit, "run_dir": str(res.path)})
     frame = pd.DataFrame(rows)
+    _add_reference_errors(ctx, frame, plan, results)
     frame.insert(3, "usable", usable_mask(frame))
+    tail = ["device", "commit", "run_dir"]
+    frame = frame[[c for c in frame.columns if c not in tail] + tail]
     runs.write_csv(frame, ctx.data / "stress.csv")
     runs.atomic_write_json(ctx.data / "stress_summary.json",
                            {**largest_stable_dt(frame), "scene": scene_name, "steps": ctx.scale.stress_steps,
-                            "particles": plan[0][2].scene.estimated_particles(), "commit": ctx.commit})
+                            "particles": plan[0][2].scene.estimated_particles(), "usable_bound": usable_bound_text(),
+                            "commit": ctx.commit})
     return frame
 
 
@@ -173,8 +259,8 @@ def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
             frame = run_stress(ctx)
     typer.echo(frame[["parameter", "value", "stable", "step", "reason"]].to_string(index=False))
     summary = json.loads((ctx.data / "stress_summary.json").read_text())
-    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s; largest usable dt (density error <= "
-               f"{100 * DENSITY_ERROR_LIMIT:g}%): {summary['largest_usable_dt']} s")
+    typer.echo(f"largest stable dt: {summary['largest_stable_dt']} s; largest usable dt: "
+               f"{summary['largest_usable_dt']} s (usable: {usable_bound_text()})")
     typer.echo(f"wrote {ctx.data / 'stress.csv'}")
 
 

@@ -19,7 +19,8 @@ Wall time is the time spent inside the solver's step() (analysis and I/O exclude
 Outputs in OUT/data: sweep.csv (one row per run; ``pareto`` marks the runs no other run of the same
 method beats in both wall time and error_self) and sweep_verdict.json (adaptive against
 non-adaptive at equal error: the non-adaptive wall time interpolated, linearly in error, at each
-adaptive run's error).
+adaptive run's error; the speed-ups' geometric mean with its 95% interval, "no difference measured" where the
+interval holds 1 or a single comparison leaves none: ``speedup_summary``).
 """
 from __future__ import annotations
 
@@ -148,11 +149,33 @@ def verdict(frame: pd.DataFrame) -> dict:
         out["verdict"] = (f"no overlap: adaptive errors {adapt.error_self.min():.3g}..{adapt.error_self.max():.3g}, "
                           f"non-adaptive {lo:.3g}..{hi:.3g}")
         return out
-    speedup = float(np.median([c["speedup"] for c in out["comparisons"]]))
-    out["median_speedup"] = speedup
-    word = "faster" if speedup > 1 else "slower"
-    factor = speedup if speedup > 1 else 1.0 / speedup
-    out["verdict"] = f"at equal error, adaptive runs are {factor:.2f}x {word} than non-adaptive runs (median)"
+    out.update(speedup_summary([c["speedup"] for c in out["comparisons"]]))
+    return out
+
+
+def speedup_summary(speedups) -> dict:
+    """The verdict over the comparisons' speed-ups (non-adaptive wall time over adaptive, each at an adaptive
+    run's error): their geometric mean with its 95% t-interval on the logarithms (bench.report.inference.ratio_ci),
+    and "no difference measured" where the interval holds 1 or one comparison leaves none. Each speed-up is a
+    single wall-clock ratio of two runs, so the interval is what separates a difference from run-to-run noise."""
+    from bench.report.inference import describes_no_difference, ratio_ci
+    speedups = [float(v) for v in speedups]
+    ci = ratio_ci(speedups)
+    listed = ", ".join(f"{v:.2f}x" for v in speedups)
+    out = {"speedups": speedups, "speedup": ci.mean, "median_speedup": float(np.median(speedups)),
+           "speedup_interval": [ci.lo, ci.hi] if ci.n >= 2 else None, "comparisons_n": ci.n,
+           "no_difference": describes_no_difference(ci)}
+    if ci.n < 2:
+        out["verdict"] = (f"no difference measured: one comparison at equal error ({listed}, adaptive against "
+                          "non-adaptive wall time) gives no interval")
+    elif out["no_difference"]:
+        out["verdict"] = (f"no difference measured: at equal error the adaptive runs' speed-ups are {listed} "
+                          f"(geometric mean {ci.mean:.2f}x, 95% interval {ci.lo:.2f}-{ci.hi:.2f}x holds 1)")
+    else:
+        word = "faster" if ci.mean > 1 else "slower"
+        factor, lo, hi = (ci.mean, ci.lo, ci.hi) if ci.mean > 1 else (1 / ci.mean, 1 / ci.hi, 1 / ci.lo)
+        out["verdict"] = (f"at equal error, adaptive runs are {factor:.2f}x {word} than non-adaptive runs (geometric "
+                          f"mean of {ci.n} comparisons, 95% interval {lo:.2f}-{hi:.2f}x)")
     return out
 
 

@@ -13,8 +13,12 @@ At scale ``gpu`` the scenes run at the paper's particle counts; at ``cpu``/``smo
 scaled down (see bench.studies.scales) and the ``scale`` column says so.  Output:
 OUT/data/table1.csv (columns TABLE1_COLUMNS, then backend, scale, steps, initial_particles,
 stable, reason, paper_max_particles, paper_total_ms, speedup_vs_paper = paper_total_ms / total_ms
-(the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv), run_dir), and what the timing was bought
-with: mass_centre_rise_m, density_excess_mean, density_deficit_mean (:func:`incompressibility`).
+(the paper: GeForce GTX 780 Ti, bench/data/paper_table1.csv) only at the gpu scale and where the row's
+largest particle count is within MATCH_TOLERANCE of the paper's (a ratio of runs of other particle counts is
+not a speed-up), particle_steps_per_s = max_particles / (total_ms / 1000), the per-step spread where the run
+recorded each step's wall time (steps.csv ``wall_ms``: step_ms_median, step_ms_p05, step_ms_p95 over the
+timed steps, timed_steps), run_dir), and what the timing was bought with: mass_centre_rise_m,
+density_excess_mean, density_deficit_mean (:func:`incompressibility`).
 
 Beside the paper's rows: when OUT/data/adaptive_verdict.json (``cloudpbf adaptive-pareto --scene growing``)
 names a best adaptive variant that is not the scene's own setting, a fifth row times ``growing_adaptive``
@@ -49,6 +53,9 @@ TABLE1_COLUMNS = ("example", "figure", "mode", "variant", "max_particles", *(f"{
                   "total_ms", "device", "commit")
 PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
 
+
+MATCH_TOLERANCE = 0.2
+"""A row's speed-up against the paper needs its particle count within 20% of the paper's row."""
 
 CPU_TIMING_STEPS = 500
 """Below the GPU scale a row runs at most this many steps (times the scale's step fraction)."""
@@ -122,6 +129,22 @@ def incompressibility(result: runs.RunResult) -> dict:
     return out
 
 
+def step_spread(result: runs.RunResult, warmup: int) -> dict:
+    """Median and 5-95% of the per-step wall time (ms) over the timed steps, where steps.csv records it
+    (``wall_ms``); NaN otherwise."""
+    steps = result.steps_table()
+    out = {"step_ms_median": float("nan"), "step_ms_p05": float("nan"), "step_ms_p95": float("nan"),
+           "timed_steps": float("nan")}
+    if not len(steps) or "wall_ms" not in steps:
+        return out
+    timed = steps[steps["step"] > warmup] if "step" in steps else steps.iloc[warmup:]
+    wall = pd.to_numeric(timed["wall_ms"], errors="coerce").dropna()
+    if len(wall):
+        lo, med, hi = wall.quantile([0.05, 0.5, 0.95])
+        out.update(step_ms_median=float(med), step_ms_p05=float(lo), step_ms_p95=float(hi), timed_steps=len(wall))
+    return out
+
+
 def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: StudyContext) -> dict:
     example, figure, mode, variant, _ = meta
     timings = result.timings()
@@ -133,12 +156,15 @@ def table1_row(meta: tuple, spec: runs.RunSpec, result: runs.RunResult, ctx: Stu
     ran = [row[f"{p}_ms"] for p in PHASES if row[f"{p}_ms"] is not None]
     row["total_ms"] = sum(ran) if ran else None
     paper = paper_rows().get((example, mode), {})
+    n_paper = paper.get("max_particles")
+    matched = (ctx.scale.particles is None and bool(n_paper) and bool(result.max_particles)
+               and abs(result.max_particles / n_paper - 1) <= MATCH_TOLERANCE)
     row.update(device=result.device, commit=ctx.commit, backend=result.backend, scale=ctx.scale.environment_label,
                steps=spec.total_steps, initial_particles=spec.scene.estimated_particles(), stable=result.stable,
-               reason=result.reason, paper_max_particles=paper.get("max_particles"),
-               paper_total_ms=paper.get("total_ms"),
-               speedup_vs_paper=paper["total_ms"] / row["total_ms"] if paper and row["total_ms"] else None,
-               run_dir=str(result.path))
+               reason=result.reason, paper_max_particles=n_paper, paper_total_ms=paper.get("total_ms"),
+               speedup_vs_paper=paper["total_ms"] / row["total_ms"] if matched and row["total_ms"] else None,
+               particle_steps_per_s=(result.max_particles * 1e3 / row["total_ms"] if row["total_ms"] else None),
+               **step_spread(result, getattr(spec, "warmup_steps", 0)), run_dir=str(result.path))
     row.update(incompressibility(result))
     return row
 
@@ -159,11 +185,14 @@ def table1_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
     with study_context(out, runs_root, scale, backend, None, None, quiet) as ctx:
         with refusals():
             frame = run_table1(ctx)
+    gpu = ctx.scale.particles is None
     shown = ["example", "mode", "variant", "max_particles", "pbf_ms", "smoothing_ms", "cloud_dynamics_ms", "splitting_ms",
-             "merging_ms", "total_ms", "paper_max_particles", "paper_total_ms", "speedup_vs_paper", "stable"]
+             "merging_ms", "total_ms", "particle_steps_per_s"] + (
+        ["paper_max_particles", "paper_total_ms", "speedup_vs_paper"] if gpu else []) + ["stable"]
     typer.echo(frame[shown].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
-    typer.echo(f"device: {frame['device'].iloc[0]}; scale: {ctx.scale.environment_label}; "
-               f"paper: GeForce GTX 780 Ti")
+    typer.echo(f"device: {frame['device'].iloc[0]}; scale: {ctx.scale.environment_label}"
+               + ("; paper: GeForce GTX 780 Ti (speed-up only where the particle counts match)" if gpu else
+                  "; the comparison with the paper's Table 1 needs the gpu scale (--scale gpu)"))
     typer.echo(f"wrote {ctx.data / 'table1.csv'}")
 
 

@@ -1,0 +1,272 @@
+"""The report's first screen: one card per verdict, each a small figure, a one-line answer and the error or
+interval it holds with, and links to the section and the data files behind it.
+
+Cards, in order: Table 1 against the paper, the adaptive front (adaptive-pareto, else the sweep), particles
+against the grid, the stability map, and time to solution, a slot shown only when its data exists
+(``OUT/data/time_to_solution.json``: ``answer``, optional ``detail``, ``interval`` [lo, hi], ``figure``, a PNG
+under data/ to show, and ``files``, the data files to link; the card links the section ``time_to_solution``
+when a study registers one).  A card without data says which command produces it.
+
+Verdict rules: a speed-up against the paper only where the particle counts match (timing.paper_comparison);
+every speed-up beside its interval, and "no difference measured" where the interval holds 1 (or 0 for a
+difference); ms per step as a median with its spread where the data has the per-step times, else plainly as
+the mean over the timed steps.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from . import glance_plots as gp
+from . import plots
+from .common import Inputs, Section, _command
+from .inference import LEVEL, Interval, describes_no_difference, difference_ci, format_ci, mean_ci
+
+
+@dataclass
+class Card:
+    id: str
+    title: str
+    answer: str = ""
+    detail: str = ""
+    figure: str | None = None
+    links: list = field(default_factory=list)      # (label, href): sections '#id', data files 'data/NAME'
+    level: str = "ok"                              # ok, warn (no difference measured / caveat), missing
+    command: str = ""
+
+
+def _data_link(inp: Inputs, *names: str) -> list:
+    return [(name, f"data/{name}") for name in names if (inp.data / name).is_file()]
+
+
+def _section_link(target: str, titles: dict) -> list:
+    return [(titles[target], f"#{target}")] if target in titles else []
+
+
+def _missing(card: Card, inp: Inputs, what: str, key: str) -> Card:
+    card.level, card.answer, card.command = "missing", f"not run in this study: {what}", _command(key, inp.out)
+    return card
+
+
+def _ratio_words(ci: Interval, what: str = "") -> str:
+    """'1.60x faster [1.30, 1.90]' or 'no difference measured (1.05x, interval 0.8-1.3x)'."""
+    if describes_no_difference(ci):
+        bounds = (f", {100 * LEVEL:g}% interval {ci.lo:.2f}-{ci.hi:.2f}x" if np.isfinite(ci.lo)
+                  else ", no interval")
+        return f"no difference measured ({ci.mean:.2f}x{bounds})"
+    if ci.mean >= 1:
+        return f"{ci.mean:.2f}x faster{what} [{ci.lo:.2f}, {ci.hi:.2f}]"
+    return f"{1 / ci.mean:.2f}x slower{what} [{1 / ci.hi:.2f}, {1 / ci.lo:.2f}]"
+
+
+# ---- Table 1 ----------------------------------------------------------------------------------------------
+def table1_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    from .timing import PAPER_NEEDS_GPU, paper_comparison, step_time_text
+    card = Card("table1", "Table 1 against the paper")
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        return _missing(card, inp, "no table1.csv", "table1")
+    rows = paper_comparison(measured, env)
+    rows = rows[rows["variant"] == ""]
+    card.links = _section_link("table1", titles) + _data_link(inp, "table1.csv")
+    scale = rows["scale"].iloc[0]
+    labels = [r.replace(" non-adaptive", "").replace(" adaptive", " adapt.") for r in rows["row"]]
+    if scale != "gpu":
+        rates = ", ".join(f"{r['row']} {r['particle_steps_per_s']:.3g}" for r in rows.to_dict("records"))
+        counts = pd.to_numeric(rows["max_particles"], errors="coerce")
+        card.answer = (f"Throughput at the {scale} scale ({counts.min():,.0f}-{counts.max():,.0f} particles): "
+                       f"{rates} particle-steps per second.")
+        card.detail = PAPER_NEEDS_GPU
+        card.level = "warn"
+        card.figure = gp.bars(labels, rows["particle_steps_per_s"], ylabel="particle-steps / s")
+        return card
+    matched = rows[rows["counts_match"]]
+    other = rows[~rows["counts_match"]]
+    parts = [f"{r['row']} {r['speedup_vs_paper']:.3g}x" for r in matched.to_dict("records")]
+    card.answer = ("Per step faster than the paper at its particle counts: " + ", ".join(parts) + "."
+                   if parts else "No row runs at the paper's particle counts: throughput only.")
+    details = []
+    if len(other):
+        details.append("Other particle counts, so throughput (particle-steps/s) instead of a speed-up: " + ", ".join(
+            f"{r['row']} {r['max_particles']:,.0f} against {r['paper_particles']:,.0f} particles, "
+            f"{r['throughput_vs_paper']:.3g}x the paper's throughput" for r in other.to_dict("records")) + ".")
+    first = rows.iloc[0].to_dict()
+    details.append(f"{first['row']}: {step_time_text(first)}.")
+    card.detail = " ".join(details)
+    card.figure = gp.bars(labels, rows["total_ms"], reference=rows["paper_ms"], ylabel="ms per step")
+    return card
+
+
+# ---- the adaptive front -----------------------------------------------------------------------------------
+def _pareto_card(inp: Inputs, card: Card, titles: dict) -> Card | None:
+    parts, details, figure = [], [], None
+    for suffix in ("", "_cumulus"):
+        path = inp.data / f"adaptive_verdict{suffix}.json"
+        if not path.is_file():
+            continue
+        v = json.loads(path.read_text())
+        scene = v.get("scene", suffix.strip("_") or "growing")
+        best = v.get("best") or {}
+        speed = best.get("speedup_at_equal_error")
+        card.links += _data_link(inp, path.name, f"adaptive_pareto_configs{suffix}.csv")
+        if speed is None or not np.isfinite(speed):
+            parts.append(f"{scene}: {v.get('verdict', 'no verdict')}")
+            continue
+        interval = best.get("speedup_interval")
+        ci = Interval(float(speed), *(map(float, interval) if interval else (math.nan, math.nan)), n=best.get("seeds") or 0)
+        parts.append(f"{scene}: best variant {best.get('name', '?')} {_ratio_words(ci)} at equal error "
+                     f"{best.get('error', math.nan):.3g} (±{best.get('error_seed_spread', math.nan):.2g} over seeds)")
+        details.append(f"{scene}: {best.get('ms_per_step', math.nan):.3g} against "
+                       f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step (means over "
+                       f"{best.get('stable_seeds', '?')} of {best.get('seeds', '?')} stable seeds); interval: 5-95% "
+                       "of the speed-up over resampled seeds")
+        configs, _ = inp.csv(f"adaptive_pareto_configs{suffix}")
+        if figure is None and configs is not None and {"kind", "ms_per_step", "error"} <= set(configs.columns):
+            uni = configs[configs["kind"] == "uniform"]
+            ada = configs[configs["kind"] == "adaptive"]
+            star = configs[configs["config"] == best.get("name")] if "config" in configs.columns else ada.iloc[:0]
+            figure = gp.front(uni["ms_per_step"], uni["error"], ada["ms_per_step"], ada["error"],
+                              best=(float(star["ms_per_step"].iloc[0]), float(star["error"].iloc[0]))
+                              if len(star) else None)
+    if not parts:
+        return None
+    card.answer = "; ".join(parts) + "."
+    card.detail = "; ".join(details) + ("." if details else "")
+    card.figure = figure
+    card.level = "warn" if "no difference measured" in card.answer else "ok"
+    card.links = _section_link("adaptive_pareto", titles) + card.links
+    return card
+
+
+def sweep_verdict(v: dict) -> tuple[str, bool]:
+    """(the sweep verdict's text, no difference measured) from sweep_verdict.json, its interval recomputed from the
+    comparisons so that a verdict written before the interval existed is read by the same rule."""
+    comps = v.get("comparisons") or []
+    if not comps:
+        return str(v.get("verdict", "no verdict")), True
+    from bench.studies.sweep import speedup_summary
+    summary = speedup_summary([c["speedup"] for c in comps])
+    errs = [c["error"] for c in comps]
+    return f"{summary['verdict']}; at errors {min(errs):.3g}-{max(errs):.3g}", summary["no_difference"]
+
+
+def adaptive_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    card = Card("adaptive_front", "The adaptive front: speed-up at equal error")
+    found = _pareto_card(inp, card, titles)
+    if found is not None:
+        return found
+    path = inp.data / "sweep_verdict.json"
+    if not path.is_file():
+        return _missing(card, inp, "no adaptive_verdict.json or sweep_verdict.json", "adaptive_pareto")
+    v = json.loads(path.read_text())
+    text, none = sweep_verdict(v)
+    card.answer = f"Sweep (one seed per run): {text}."
+    card.detail = f"Error: {v.get('metric', 'against the finest run')}; wall time inside step()."
+    card.level = "warn" if none else "ok"
+    card.links = _section_link("sweep", titles) + _data_link(inp, "sweep_verdict.json", "sweep.csv")
+    fixed, adapt = pd.DataFrame(v.get("non_adaptive") or []), pd.DataFrame(v.get("adaptive") or [])
+    if len(fixed) and len(adapt):
+        card.figure = gp.front(fixed["wall_s"], fixed["error_self"], adapt["wall_s"], adapt["error_self"],
+                               xlabel="wall time in step() (s)", uniform_label="non-adaptive")
+    return card
+
+
+# ---- particles against the grid ---------------------------------------------------------------------------
+def compare_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    card = Card("compare", "Particles against the grid")
+    ts, _ = inp.csv("compare_timeseries")
+    if ts is None or "solver" not in ts.columns or not {"particles", "grid"} <= set(ts["solver"]):
+        return _missing(card, inp, "no compare_timeseries.csv with both solvers", "compare")
+    last = ts.sort_values("time_s").groupby(["solver", "mode", "seed"]).tail(1)
+    grid = last[last["solver"] == "grid"]["cloud_cover"]
+    labels, cis, parts, none = [], [], [], []
+    for mode in ("non-adaptive", "adaptive"):
+        part = last[(last["solver"] == "particles") & (last["mode"] == mode)]["cloud_cover"]
+        if not len(part):
+            continue
+        diff = difference_ci(part, grid)
+        no = describes_no_difference(diff, 0.0)
+        none.append(no)
+        labels.append(f"particles {mode}")
+        cis.append(mean_ci(part))
+        bounds = (f"[{diff.lo:+.2g}, {diff.hi:+.2g}]" if np.isfinite(diff.lo) else "(no interval)")
+        parts.append(f"{mode} {diff.mean:+.2g} {bounds}" + (": no difference measured" if no else ""))
+    labels.append("grid")
+    cis.append(mean_ci(grid))
+    card.answer = "Final cloud cover, particles minus grid: " + "; ".join(parts) + "."
+    card.detail = ("Seed means [95% t-interval]: " + ", ".join(f"{lab} {format_ci(ci)}" for lab, ci in zip(labels, cis))
+                   + f"; difference: Welch {100 * LEVEL:g}% interval.")
+    card.level = "warn" if any(none) else "ok"
+    card.figure = gp.intervals(labels, [c.mean for c in cis], [c.lo for c in cis], [c.hi for c in cis],
+                               "final cloud cover (fraction)")
+    card.links = _section_link("compare", titles) + _data_link(inp, "compare_timeseries.csv", "compare_runs.csv")
+    return card
+
+
+# ---- the stability map ------------------------------------------------------------------------------------
+def stability_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    from .tradeoffs import stress_frame, stress_limits
+    card = Card("stress", "Stability map")
+    df, _ = inp.csv("stress")
+    if df is None:
+        return _missing(card, inp, "no stress.csv", "stress")
+    df = stress_frame(df)
+    card.answer = stress_limits(df)
+    if "reference_error" not in df.columns:
+        card.level = "warn"
+    dt = df[df["parameter"] == "dt"].sort_values("value")
+    if len(dt):
+        states = ["usable" if u else "stable" if s else "unstable" for u, s in zip(dt["usable"], dt["stable"])]
+        card.figure = gp.strip(pd.to_numeric(dt["value"], errors="coerce"), states,
+                               stable_label="stable, not usable" if "reference_error" in df.columns
+                               else "stable (usable not checked)")
+    card.links = _section_link("stress", titles) + _data_link(inp, "stress.csv", "stress_summary.json")
+    return card
+
+
+# ---- time to solution (a slot: shown when its data exists) --------------------------------------------------
+def time_to_solution_card(inp: Inputs, env: dict | None, titles: dict) -> Card | None:
+    path = inp.data / "time_to_solution.json"
+    if not path.is_file():
+        return None
+    card = Card("time_to_solution", "Time to solution")
+    try:
+        v = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        card.level, card.answer = "missing", f"could not read time_to_solution.json: {exc}"
+        return card
+    card.answer = str(v.get("answer", "no answer recorded"))
+    interval = v.get("interval")
+    card.detail = str(v.get("detail", "")) + (f" Interval: {interval[0]:.3g}-{interval[1]:.3g}."
+                                              if isinstance(interval, (list, tuple)) and len(interval) == 2 else "")
+    if v.get("no_difference"):
+        card.level = "warn"
+    figure = inp.data / str(v.get("figure", "")) if v.get("figure") else None
+    if figure is not None and figure.is_file() and figure.suffix == ".png":
+        card.figure = plots.png_file_uri(figure)
+    card.links = (_section_link("time_to_solution", titles)
+                  + _data_link(inp, path.name, *[str(f) for f in v.get("files") or []]))
+    return card
+
+
+CARDS = (table1_card, adaptive_card, compare_card, stability_card, time_to_solution_card)
+
+
+def _summary(inp: Inputs, sec: Section, env: dict | None) -> None:
+    """The verdict cards (the report's first screen)."""
+    from .build import report_sections
+    titles = {r.id: r.title for r in report_sections()}
+    cards = []
+    for make in CARDS:
+        try:
+            card = make(inp, env, titles)
+        except Exception as exc:  # a broken input must not hide the other cards
+            card = Card(make.__name__.replace("_card", ""), make.__name__.replace("_card", "").replace("_", " "),
+                        answer=f"could not build this card from data/: {type(exc).__name__}: {exc}", level="missing")
+        if card is not None:
+            cards.append(card)
+    sec.add("cards", cards)
