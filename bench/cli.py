@@ -34,7 +34,7 @@ import typer
 
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
-                              parse_overrides, refusals, scene_arg, study_context)
+                              parse_overrides, refusals, refusing, scene_arg, study_context)
 from bench.cli_runs import physics_lines, resolve_run, runs_app
 from bench.grid_scaling import grid_scaling_command
 
@@ -134,23 +134,11 @@ def run(
 
 
 # ---- the studies' own commands (each declared in its study file, found through the registry) ------------
-def _refusing(command):
-    """A study's command with what it cannot do as asked (a scene too large, a cache it cannot write, ...)
-    turned into one line and exit code 2 (cli_common.refusals), whatever path inside raised it."""
-    import functools
-
-    @functools.wraps(command)
-    def wrapper(*args, **kwargs):
-        with refusals():
-            return command(*args, **kwargs)
-    return wrapper
-
-
 def _add_study_commands() -> None:
     from bench.studies.registry import studies
     for study in studies():
         if study.command is not None:
-            app.command(study.name)(_refusing(study.command))
+            app.command(study.name)(refusing(study.command))   # SceneError & co.: exit 2
 
 
 _add_study_commands()
@@ -260,7 +248,7 @@ def export(
         typer.echo(f"wrote {path}")
 
 
-app.command("grid-scaling")(grid_scaling_command)
+app.command("grid-scaling")(refusing(grid_scaling_command))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -183,6 +183,18 @@ def refusals(particles: Optional[int] = None):
         raise click.UsageError(str(exc)) from None
 
 
+def refusing(command):
+    """`command` with what it cannot do as asked (a scene too large, a cache it cannot write, ...) turned into
+    one line and exit code 2 (refusals), whatever path inside it raised it."""
+    import functools
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        with refusals():
+            return command(*args, **kwargs)
+    return wrapper
+
+
 def study_context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Backend, workers: Optional[int],
                   scheduler: Optional[str], quiet: bool, gpus: Optional[str] = None, cuda_cluster_factory=None):
     from bench import runs
@@ -230,7 +242,7 @@ def run_command(function, name: str, argv: list[str] | None = None) -> int:
     """Run one command function as its own program (``python -m bench.studies.MODULE ARGS`` is
     ``cloudpbf NAME ARGS``); returns the exit code."""
     single = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None)
-    single.command(name)(function)
+    single.command(name)(refusing(function))
     try:
         single(args=argv, prog_name=f"cloudpbf {name}")
     except SystemExit as exc:

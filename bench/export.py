@@ -242,7 +242,10 @@ def _target(run_dir: Path, out, name: str, fmt: str, record: dict) -> Path:
     if out.is_dir() and not _same_export(marker_of(out), record):
         return out / filename
     if not out.parent.is_dir():
-        raise ExportError(f"{out.parent}: no such folder (--out's folder must exist)")
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise disk_error(exc, out.parent) from None
     return out
 
 

@@ -272,6 +272,13 @@ def test_runs_list_show_prune_and_run_summary(toy_solver, tmp_path):  # noqa: F8
     assert bad.exit_code == 2 and "'--status'" in bad.output
 
 
+def test_a_file_as_the_cache_folder_is_one_line(reference, tmp_path):
+    spec, _ = reference
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(StoreError, match="a folder on the way is a file"):
+        runs.execute(spec, tmp_path / "file", quiet=True)
+
+
 def test_strict_gpus_scheduler_and_scene_errors_of_study_commands(tmp_path):
     for args, needle in ((["demo", "--gpus", "\u00b2"], "'--gpus'"),
                          (["demo", "--scheduler", "tcp://h:8786\n"], "'--scheduler'"),
@@ -315,8 +322,13 @@ def _fifo(p: Path):
     os.mkfifo(p)
 
 
+def _device(p: Path):
+    p.unlink()
+    _device_or_fifo(p)            # a character device where the machine lets us make one (root), else a FIFO
+
+
 DAMAGES = {"nested": _nested, "garbage": _garbage, "truncate": _truncate, "dir": _as_dir,
-           "link_outside": _link_outside, "link_dev_zero": _link_zero, "fifo": _fifo}
+           "link_outside": _link_outside, "link_dev_zero": _link_zero, "fifo": _fifo, "device": _device}
 FINISHED_FILES = ["result.json", "config.json", "timings.csv", "steps.csv", "stats.parquet", "profiles.parquet",
                   "snapshots/step_000020.npz", "checkpoint.npz"]
 UNFINISHED_FILES = ["progress.json", "checkpoint.npz", "partial/stats.json", "partial/steps.json",

@@ -31,7 +31,7 @@ _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _NONBLOCK = getattr(os, "O_NONBLOCK", 0)
 # errno values of a write the store cannot do here (not damage: recomputing would fail the same way)
 WRITE_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EPERM, getattr(errno, "EDQUOT", errno.ENOSPC),
-                errno.EFBIG}
+                errno.EFBIG, errno.ENOTDIR}
 
 
 class StoreError(RuntimeError):
@@ -169,5 +169,6 @@ def store_error(exc: OSError, where: str | Path) -> StoreError | None:
         return None
     why = {errno.ENOSPC: "the disk is full", errno.EROFS: "the file system is read-only",
            getattr(errno, "EDQUOT", errno.ENOSPC): "the disk quota is used up",
-           errno.EFBIG: "the file is too large for the file system"}.get(exc.errno, "no permission to write")
+           errno.EFBIG: "the file is too large for the file system",
+           errno.ENOTDIR: "a folder on the way is a file"}.get(exc.errno, "no permission to write")
     return StoreError(f"{where}: cannot write ({why}: {exc.strerror or exc})")
