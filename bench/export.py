@@ -47,7 +47,8 @@ import numpy as np
 from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
 from bench.store.manifest import read_result, verify_run
 from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
-from bench.store.targets import NETCDF_ATTR, ExportError, check_free_space, disk_error, marker_of, staged
+from bench.store.targets import (NETCDF_ATTR, ExportError, check_free_space, disk_error, foreign_entries,
+                                  marker_of, staged)
 from pbf_cuda.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
 
 __all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "ExportError", "particles_to_xarray", "run_to_xarray",
@@ -284,6 +285,10 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
                               "(choose another --out)")
         if not force:
             raise ExportError(f"{target}: exists (an earlier export of this run); --force replaces it")
+        foreign = foreign_entries(target, marker_of(target))
+        if foreign:
+            raise ExportError(f"{target}: holds {len(foreign)} file(s) the export did not write ({foreign[0][:60]}); "
+                              "refusing to replace it")
         replace = True
     check_free_space(target.parent, disk)
     folder = fmt != "netcdf"

@@ -145,10 +145,23 @@ def test_force_replaces_only_an_export_of_the_same_run(run_dir, tmp_path):
     one_line_error(export(run_dir, "--format", "netcdf", "--out", link, "--force"), "is not an export of this run")
     folder = tmp_path / "series"
     assert export(run_dir, "--format", "vtp", "--out", folder).exit_code == 0
-    (folder / "notes.txt").write_text("mine")          # written into an earlier export: replaced with it,
-    res = export(run_dir, "--format", "vtp", "--out", folder, "--force")   # the export is the folder
-    assert res.exit_code == 0, res.output
+    assert export(run_dir, "--format", "vtp", "--out", folder, "--force").exit_code == 0
+    (folder / "notes.txt").write_text("mine")          # put into an earlier export: the export is not replaced
+    one_line_error(export(run_dir, "--format", "vtp", "--out", folder, "--force"),
+                   "holds 1 file(s) the export did not write (notes.txt)")
+    assert (folder / "notes.txt").read_text() == "mine"
     no_temp_files(tmp_path)
+
+
+def test_a_killed_exports_temporary_copy_is_removed_by_the_next(run_dir, tmp_path):
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = tmp_path / f".out.nc.{dead.pid}.0123456789ab.export-tmp"
+    stale.write_bytes(b"half")
+    mine = tmp_path / ".out.nc.keep"
+    mine.write_bytes(b"not a stage")
+    assert export(run_dir, "--format", "netcdf", "--out", tmp_path / "out.nc").exit_code == 0
+    assert not stale.exists() and mine.exists()
 
 
 def test_names_come_from_the_run_and_stay_inside_out(tmp_path):

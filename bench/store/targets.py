@@ -15,6 +15,7 @@ import ctypes
 import errno
 import json
 import os
+import re
 import shutil
 import uuid
 from pathlib import Path
@@ -22,9 +23,11 @@ from pathlib import Path
 from bench.store.safe import UnsafeFileError, entry_kind, read_json
 from pbf_cuda.files import atomic_write_json, fsync_dir
 
-__all__ = ["ExportError", "MARKER", "marker_of", "staged", "disk_error", "check_free_space"]
+__all__ = ["ExportError", "MARKER", "marker_of", "staged", "disk_error", "check_free_space", "foreign_entries"]
 
-MARKER = ".cloudpbf-export.json"     # in a folder target: which run and format it holds
+MARKER = ".cloudpbf-export.json"     # in a folder target: which run and format it holds, and its files
+MAX_MARKER_BYTES = 16 << 20
+_STAGE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]{12}\.export-(?:tmp|old)$")
 NETCDF_ATTR = "cloudpbf_export"      # in a NetCDF target: the same record, as a global attribute (JSON)
 
 
@@ -67,7 +70,7 @@ def marker_of(target: Path) -> dict | None:
         if kind == "dir":
             if entry_kind(target / MARKER) != "file":
                 return None
-            record = read_json(target / MARKER, limit=1 << 16)
+            record = read_json(target / MARKER, limit=MAX_MARKER_BYTES)
         elif kind == "file":
             record = _netcdf_marker(target)
         else:
@@ -88,6 +91,46 @@ def _netcdf_marker(path: Path) -> dict | None:
         return None
     raw = raw.decode() if isinstance(raw, bytes) else str(raw)
     return json.loads(raw) if len(raw) < 1 << 16 else None
+
+
+def _files(folder: Path) -> list[str]:
+    """Every entry under `folder` (relative paths; links and odd files listed, never followed)."""
+    out = []
+    for base, dirs, files in os.walk(folder, followlinks=False):
+        rel = Path(base).relative_to(folder)
+        out.extend((rel / n).as_posix() for n in dirs + files)
+    return sorted(out)
+
+
+def foreign_entries(target: Path, marker: dict) -> list[str]:
+    """Entries of a folder export that its marker does not list (files someone else put there)."""
+    if entry_kind(target) != "dir":
+        return []
+    listed = set(marker.get("files") or []) | {MARKER}
+    return [rel for rel in _files(target) if rel not in listed]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def remove_stale_stages(target: Path) -> None:
+    """Temporary copies of `target` left by an export that was killed (its process is gone)."""
+    try:
+        entries = list(target.parent.iterdir())
+    except OSError:
+        return
+    for p in entries:
+        m = _STAGE.match(p.name)
+        if m and m.group("name") == target.name and int(m.group("pid")) != os.getpid() \
+                and not _alive(int(m.group("pid"))):
+            _remove(p)
 
 
 def _renameat2(src: Path, dst: Path, flags: int) -> bool:
@@ -144,14 +187,15 @@ def staged(target: Path, record: dict, folder: bool, replace: bool):
     """Yield a temporary path beside `target` to write the export into (a folder when `folder`, made here;
     else a file name); on success the record is added (a marker file in a folder; a NetCDF file carries it
     itself) and the stage moved over `target`.  On any failure the stage is removed; an OSError becomes an
-    ExportError naming `target`."""
+    ExportError naming `target`.  Stages of this target left by killed exports are removed first."""
+    remove_stale_stages(target)
     stage = target.parent / f".{target.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.export-tmp"
     try:
         if folder:
             stage.mkdir()
         yield stage
         if folder:
-            atomic_write_json(stage / MARKER, record)
+            atomic_write_json(stage / MARKER, {**record, "files": _files(stage)})
         fsync_dir(stage if folder else target.parent)
         _move_into_place(stage, target, replace)
         fsync_dir(target.parent)
