@@ -373,3 +373,35 @@ def test_real_solver_resume_matches_in_every_column(tmp_path):
     for name in ("stats", "steps_table"):
         a, b = getattr(resumed, name)(), getattr(straight, name)()
         assert [c for c in a.columns if not a[c].equals(b[c])] == [], name
+
+
+def test_a_peer_sending_a_huge_frame_is_one_line(tmp_path, monkeypatch):
+    pytest.importorskip("distributed")
+    import socket
+    import struct
+    import threading
+    from bench.studies import context
+    from bench.studies.scales import resolve_scale
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            with conn:
+                conn.sendall(struct.pack("<Q", 1 << 62) + b"x" * 64)     # "4 EiB follow"
+                conn.recv(1024)
+    threading.Thread(target=serve, daemon=True).start()
+    monkeypatch.setattr(context, "SCHEDULER_TIMEOUT_S", 5.0)
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    ctx = context.StudyContext(out=tmp_path / "out", scale=resolve_scale("smoke"), scheduler=address)
+    try:
+        with pytest.raises(context.SchedulerError, match="does not answer as a dask scheduler") as err:
+            ctx.client()
+        assert "\n" not in str(err.value)
+    finally:
+        server.close()
