@@ -110,7 +110,19 @@ class Particles:
 
 @dataclass
 class Time:
-    dt: float = _spec(2.0, 1e-6, 1e3, "s", "time step")
+    dt: float = _spec(2.0, 1e-6, 1e3, "s", "time step (the first step where cfl > 0)")
+    reference_dt: float = _spec(2.0, 1e-6, 1e3, "s",
+                                "the step at which the per-step coefficients smoothing.kappa and pbf.xsph are stated "
+                                "(the paper's 2 s): at any dt they keep the same rate per simulated second, "
+                                "c(dt) = 1 - (1 - c)^(dt / reference_dt), so the model converges as dt shrinks")
+    cfl: float = _spec(0.0, 0.0, 2.0, "",
+                       "0: every step is dt; > 0: each step is chosen so that max |v_i| dt / h_i (h_i the particle's "
+                       "kernel radius) is this, within [dt_min, dt_max] and at most 1.25 times the step before")
+    dt_min: float = _spec(1e-6, 1e-6, 1e3, "s", "smallest CFL-controlled step")
+    dt_max: float = _spec(1e3, 1e-6, 1e3, "s", "largest CFL-controlled step")
+    max_cfl: float = _spec(1.0, 1e-3, 1e3, "",
+                           "a state whose CFL number max |v_i| dt / h_i is above this stops the run as unstable "
+                           "(a particle crossing its whole kernel support in one step)")
     steps: int = _spec(400, 1, 10**7, "", "default number of steps of a run")
     snapshot_every: int = _spec(50, 1, 10**7, "", "steps between saved snapshots")
     check_every: int = _spec(1, 1, 64, "",
@@ -494,6 +506,10 @@ def _cross_checks(scene: Scene, source: str):
     if scene.pbf.gradient_correction and scene.pbf.projection != "velocity":
         raise SceneError(f"{source}: pbf.gradient_correction corrects the velocity projection's divergence; it needs "
                          f"pbf.projection = 'velocity' (got '{scene.pbf.projection}')")
+    t = scene.time
+    if t.cfl > 0.0 and not (t.dt_min <= t.dt <= t.dt_max):
+        raise SceneError(f"{source}: time.dt = {t.dt} s must lie in [time.dt_min, time.dt_max] = [{t.dt_min}, {t.dt_max}] s "
+                         f"when time.cfl > 0 (the controlled step starts at dt)")
     if scene.wave is not None and scene.domain.boundary[1] != "wall":
         raise SceneError(f"{source}: [wave] needs domain.boundary[1] = 'wall'")
 

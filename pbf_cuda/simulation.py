@@ -223,6 +223,8 @@ class Simulation:
                                fluid["cloud"], fluid["mass"], fluid["id"])
         if _state:
             self._solver.set_clock(int(_state["step"]), float(_state["time"]), int(_state["next_id"]))
+            if _state.get("dt") is not None:   # the CFL-controlled step in use when the checkpoint was written
+                self._solver.set_time_step(float(_state["dt"]))
             if _state.get("budget_totals") is not None:
                 self._solver.set_budget_totals([float(x) for x in _state["budget_totals"]])
             impulse = _state["fluid"].get("projection_impulse")
@@ -338,6 +340,11 @@ class Simulation:
         return self._solver.time()
 
     @property
+    def time_step(self) -> float:
+        """The step in use, s: the scene's time.dt, or the CFL-controlled step (time.cfl > 0)."""
+        return self._solver.time_step()
+
+    @property
     def n_particles(self) -> int:
         return self._solver.size()
 
@@ -419,7 +426,7 @@ class Simulation:
             arrays["fluid_projection_impulse"] = s.get_float("projection_impulse")
         stats = s.stats()
         meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
-                "time": self.time, "next_id": s.next_id(), "backend": self.backend,
+                "time": self.time, "dt": s.time_step(), "next_id": s.next_id(), "backend": self.backend,
                 "budget_totals": [stats.get(f"{k}_total", 0.0) for k in BUDGET_TOTALS]}
         return atomic_savez(path, meta, **arrays)
 
@@ -449,5 +456,5 @@ class Simulation:
                 "vapor": z["boundary_vapor"] if thermo else np.zeros(nb, np.float32),
             }
         state = {"fluid": fluid, "boundary": boundary, "step": meta["step"], "time": meta["time"],
-                 "next_id": meta["next_id"], "budget_totals": meta.get("budget_totals")}
+                 "dt": meta.get("dt"), "next_id": meta["next_id"], "budget_totals": meta.get("budget_totals")}
         return cls(scene, backend=backend or meta["backend"], _state=state)

@@ -299,6 +299,7 @@ def test_heated_ground_layer_stays_on_the_floor(spacing, seed):
     from bench.statistics import heated_mass_fraction
     scene = load_scene("growing").replace(**{"domain.size": [1200.0, 1600.0, 1200.0],
                                              "particles.spacing": spacing, "time.dt": 8.0,
+                                             "time.reference_dt": 8.0,   # kappa and xsph per step of 8 s
                                              "pbf.remove_shift_drift": True})
     sim = Simulation(scene, backend="cpu", seed=seed)
     y0 = float(sim.state()["position"][:, 1].astype(np.float64).mean())

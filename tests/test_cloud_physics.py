@@ -107,10 +107,11 @@ def test_moist_static_energy_is_conserved_along_particles(backend):
 
 
 def smoothing_sim(temperature_of, kappa=0.1):
-    # scorr_k = 0: a lattice next to a wall settles a little under s_corr; these tests are about smoothing alone
+    # scorr_k = 0: a lattice next to a wall settles a little under s_corr; these tests are about smoothing alone,
+    # one pass of kappa per step: a step of 1 ms (nothing moves) at which kappa is stated (time.reference_dt)
     scene = small_cloud_scene(**{"smoothing.kappa": kappa, "atmosphere.heating_rate": 0.0, "pbf.scorr_k": 0.0,
                                  "atmosphere.buoyancy": 0.0, "atmosphere.phase_rate": 0.0,
-                                 "particles.max_speed": 0.0, "time.dt": 1e-3})
+                                 "particles.max_speed": 0.0, "time.dt": 1e-3, "time.reference_dt": 1e-3})
     base = Simulation(scene, backend="cpu")
     st = base.state()
     st["temperature"] = temperature_of(st["position"]).astype(np.float32)

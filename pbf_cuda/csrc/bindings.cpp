@@ -155,6 +155,8 @@ public:
         d["density_excess_mean"] = s.density_excess_mean;
         d["density_deficit_mean"] = s.density_deficit_mean;
         d["max_speed"] = s.max_speed;
+        d["dt"] = s.dt;
+        d["cfl"] = s.cfl;
         d["min_position"] = std::vector<double>(s.min_position, s.min_position + 3);
         d["max_position"] = std::vector<double>(s.max_position, s.max_position + 3);
         d["level_counts"] = s.level_counts;
@@ -281,6 +283,8 @@ NB_MODULE(_core, m) {
             s.impl_->set_budget_totals(t.data());
         })
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
+        .def("time_step", [](PySolver& s) { return s.impl_->time_step(); })
+        .def("set_time_step", [](PySolver& s, double dt) { s.impl_->set_time_step(dt); })
         .def("step", [](PySolver& s, int n) {
             std::string failure;
             {

@@ -69,11 +69,17 @@ struct SmoothingHeat {
 // Stability and diagnostics reduction over the fluid particles.
 struct Reduced {
     float err_sum, err_max, speed2_max;
+    float rate_max;                 // max |v_i| / h_i, 1/s: the CFL number is dt times this (time_step.h)
     float excess_sum, deficit_sum;  // sum max(C, 0), sum max(-C, 0): the two sides of the density error
     uint32_t bad;
     uint32_t why;   // OR of the BadKind bits of the bad particles
     float lo[3], hi[3];
 };
+
+// The physical range of an air parcel's temperature, K: far outside any atmosphere the scenes can state (the schema
+// allows a ground temperature of 150-400 K), so only a broken state leaves it.
+constexpr float kMinTemperature = 50.0f;
+constexpr float kMaxTemperature = 1000.0f;
 
 // Which check a particle failed (ParticleCheck::kinds), named in the instability message.
 enum BadKind : uint32_t { kBadPosition = 1, kBadVelocity = 2, kBadSpeed = 4, kBadTemperature = 8, kBadVapor = 16,
@@ -87,6 +93,7 @@ struct ReduceOp {
         r.deficit_sum = a.deficit_sum + b.deficit_sum;
         r.err_max = fmaxf(a.err_max, b.err_max);
         r.speed2_max = fmaxf(a.speed2_max, b.speed2_max);
+        r.rate_max = fmaxf(a.rate_max, b.rate_max);
         r.bad = a.bad + b.bad;
         r.why = a.why | b.why;
         for (int k = 0; k < 3; ++k) { r.lo[k] = fminf(a.lo[k], b.lo[k]); r.hi[k] = fmaxf(a.hi[k], b.hi[k]); }
@@ -104,19 +111,24 @@ struct ParticleCheck {
     float inv_rest_density;
     bool unilateral;
     float max_speed2;
-    // BadKind bits of particle i (0: it passes): non-finite position, velocity or thermodynamic field
-    // (a vapor or cloud value below zero counts too), or a speed above max_velocity.
+    float h0, inv_mass0;        // level 0's kernel radius (m) and 1 / its mass (1/kg): h_i = h0 (m_i / m0)^(1/3)
+    float lo[3], hi[3];         // the domain a particle may reach: walls' axes [-h0, L + h0], periodic axes unbounded
+    // BadKind bits of particle i (0: it passes): a non-finite position or one outside the domain, a non-finite
+    // velocity or a speed above max_velocity, a temperature outside its physical range, vapor or cloud water
+    // outside [0, 1] kg/kg (or non-finite).
     PBF_HD uint32_t kinds(uint32_t i) const {
         Vec3 x = xyz(pos[i]), v = xyz(vel[i]);
         float s2 = dot(v, v);
         uint32_t k = 0;
-        if (!finite3(x)) k |= kBadPosition;
+        if (!finite3(x) || !(x.x >= lo[0] && x.x <= hi[0] && x.y >= lo[1] && x.y <= hi[1] && x.z >= lo[2] && x.z <= hi[2]))
+            k |= kBadPosition;
         if (!finite3(v)) k |= kBadVelocity;
         else if (!(isfinite(s2) && s2 <= max_speed2)) k |= kBadSpeed;
         if (temperature) {
-            if (!isfinite(temperature[i])) k |= kBadTemperature;
-            if (!(isfinite(vapor[i]) && vapor[i] >= 0.0f)) k |= kBadVapor;
-            if (!(isfinite(cloud[i]) && cloud[i] >= 0.0f)) k |= kBadCloud;
+            float T = temperature[i];
+            if (!(T >= kMinTemperature && T <= kMaxTemperature)) k |= kBadTemperature;
+            if (!(vapor[i] >= 0.0f && vapor[i] <= 1.0f)) k |= kBadVapor;
+            if (!(cloud[i] >= 0.0f && cloud[i] <= 1.0f)) k |= kBadCloud;
         }
         return k;
     }
@@ -131,6 +143,7 @@ struct ParticleCheck {
         r.excess_sum = fmaxf(c, 0.0f);
         r.deficit_sum = fmaxf(-c, 0.0f);
         r.speed2_max = dot(v, v);
+        r.rate_max = sqrtf(r.speed2_max) / (h0 * cbrtf(pos[i].w * inv_mass0));
         r.why = kinds(i);
         r.bad = r.why ? 1u : 0u;
         r.lo[0] = r.hi[0] = x.x;

@@ -1,5 +1,7 @@
 // Launch code of the diagnostics: the step's energy and heat budget (StepBudget, mass-weighted sums in
-// double precision) and the stability check that ends a run (NaN/Inf, speed, density error).
+// double precision) and the stability check that ends a run: a particle's state out of range (NaN/Inf, outside
+// the domain, speed, temperature, water), the mean density error, the CFL number, a collapsed fluid, and
+// mechanical energy created where nothing forces the fluid.
 #pragma once
 #include <algorithm>
 #include <cmath>
@@ -94,14 +96,19 @@ inline void record_budget(SolverData& d, const StepSums& s) {
 inline ParticleCheck make_check(const SolverData& d) {
     float vmax = d.p.max_velocity;
     const bool t = d.p.thermodynamics;
-    return ParticleCheck{raw(d.pos), raw(d.vel), raw(d.density), t ? raw(d.temperature) : nullptr,
-                         t ? raw(d.vapor) : nullptr, t ? raw(d.cloud) : nullptr, d.cp.inv_rest_density,
-                         d.p.unilateral, vmax * vmax};
+    ParticleCheck c{raw(d.pos), raw(d.vel), raw(d.density), t ? raw(d.temperature) : nullptr,
+                    t ? raw(d.vapor) : nullptr, t ? raw(d.cloud) : nullptr, d.cp.inv_rest_density,
+                    d.p.unilateral, vmax * vmax, d.p.h0, 1.0f / d.p.mass0};
+    for (int k = 0; k < 3; ++k) {
+        c.lo[k] = d.p.periodic[k] ? -INFINITY : -d.p.h0;
+        c.hi[k] = d.p.periodic[k] ? INFINITY : d.p.domain[k] + d.p.h0;
+    }
+    return c;
 }
 
 PBF_HD inline Reduced no_checks() {
     Reduced init;
-    init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.why = 0; init.speed2_max = 0.0f; init.bad = 0;
+    init.err_sum = 0.0f; init.err_max = 0.0f; init.excess_sum = 0.0f; init.deficit_sum = 0.0f; init.why = 0; init.speed2_max = 0.0f; init.rate_max = 0.0f; init.bad = 0;
     for (int k = 0; k < 3; ++k) { init.lo[k] = INFINITY; init.hi[k] = -INFINITY; }
     return init;
 }
@@ -122,16 +129,50 @@ inline void reduce_checks_into(const SolverData& d, Reduced* out) {
         reduce_into(d.n, make_check(d), no_checks(), ReduceOp{}, out);
 }
 
+// The fluid's bounding box (each walled axis's extent plus one lattice spacing, a periodic axis's whole length)
+// over its rest volume sum m / rho0. A fluid whose density stays near rho0 fills at least its rest volume, so a
+// box below kMinVolumeFraction of it is a collapsed fluid (every particle pressed onto a wall or into a plane),
+// whatever its density error reads.
+constexpr double kMinVolumeFraction = 0.5;
+inline double box_volume_fraction(const SolverData& d, const Reduced& r, double mass) {
+    double box = 1.0;
+    for (int k = 0; k < 3; ++k)
+        box *= d.p.periodic[k] ? double(d.p.domain[k]) : std::max(double(r.hi[k]) - r.lo[k], 0.0) + d.p.spacing;
+    return mass > 0.0 ? box * d.p.rest_density / mass : 1.0;
+}
+
+// Mechanical energy sum m |v|^2 / 2 + sum m |g| y of a fluid nothing forces (no thermodynamics, no vorticity
+// confinement, gravity along y only), J. Walls are at rest and the solver dissipates, so the energy may not rise
+// above its value when the state was set by more than kEnergySlack of that energy's scale (the potential energy of
+// the fluid lifted by one kernel radius, plus the kinetic energy of every particle moving 1% of h0 per step). A
+// compressed start (particles closer than the rest lattice) releases the constraint's stored energy as motion, most
+// of it in the first step, so the reference is the larger of the energy when the state was set and after its first
+// checked step; the slack is wide (a dam break jittered by 0.3 spacings gains 7% more over its next steps), and a run
+// that creates energy grows past any such bound within a few steps.
+constexpr double kEnergySlack = 0.5;
+inline bool energy_checked(const Params& p) {
+    return !p.thermodynamics && !(p.vorticity > 0.0f) && p.gravity[0] == 0.0f && p.gravity[2] == 0.0f;
+}
+inline double mechanical_energy(const Params& p, const BudgetSums& s) { return s.ke - double(p.gravity[1]) * s.my; }
+inline double energy_scale(const Params& p, double mass) {
+    const double creep = 0.01 * p.h0 / p.dt;
+    return mass * (std::fabs(double(p.gravity[1])) * p.h0 + 0.5 * creep * creep);
+}
+
 // "" when the state passes (and the step becomes the last good one), else
-// "unstable|<step>|<last good step>|<reason>|<id,id,...>" (solver_api.h). r: the check's sums of this state.
-inline std::string check(SolverData& d, const Reduced& r) {
+// "unstable|<step>|<last good step>|<reason>|<id,id,...>" (solver_api.h). r: the check's sums of this state; end:
+// the step's budget sums at its end (mass, height, kinetic energy).
+inline std::string check(SolverData& d, const Reduced& r, const BudgetSums& end) {
     if (d.n == 0) return std::string();
     double mean_err = double(r.err_sum) / double(d.n);
+    const double cfl = double(d.p.dt) * r.rate_max;
+    const double volume_fraction = box_volume_fraction(d, r, end.m);
     std::string reason;
     if (r.bad > 0) {
-        static const char* names[6] = {"NaN/Inf position", "NaN/Inf velocity", "speed above max_velocity",
-                                       "NaN/Inf temperature", "NaN/Inf or negative vapor",
-                                       "NaN/Inf or negative cloud"};
+        static const char* names[6] = {"NaN/Inf or out-of-domain position", "NaN/Inf velocity",
+                                       "speed above max_velocity", "NaN/Inf or out-of-range temperature (50-1000 K)",
+                                       "NaN/Inf or out-of-range vapor (0-1 kg/kg)",
+                                       "NaN/Inf or out-of-range cloud (0-1 kg/kg)"};
         std::string what;
         for (int k = 0; k < 6; ++k)
             if (r.why & (1u << k)) what += (what.empty() ? "" : ", ") + std::string(names[k]);
@@ -140,6 +181,22 @@ inline std::string check(SolverData& d, const Reduced& r) {
     } else if (!(mean_err <= d.p.max_density_error)) {
         reason = "mean density error " + std::to_string(mean_err) + " above max_density_error = " +
                  std::to_string(d.p.max_density_error);
+    } else if (!(cfl <= d.p.max_cfl)) {
+        reason = "CFL number (largest speed x dt / kernel radius) " + std::to_string(cfl) + " above time.max_cfl = " +
+                 std::to_string(d.p.max_cfl) + " (dt = " + std::to_string(d.p.dt) + " s)";
+    } else if (!(volume_fraction >= kMinVolumeFraction)) {
+        reason = "the fluid collapsed: its bounding box holds " + std::to_string(volume_fraction) +
+                 " of its rest volume (at least " + std::to_string(kMinVolumeFraction) + ")";
+    } else if (energy_checked(d.p)) {
+        const double e = mechanical_energy(d.p, end);
+        if (d.energy_settling) {   // the first check after set-up: the start's stored energy released in its step
+            d.energy_reference = std::max(d.energy_reference, e);
+            d.energy_settling = false;
+        }
+        const double allowed = d.energy_reference + kEnergySlack * (std::fabs(d.energy_reference) + energy_scale(d.p, end.m));
+        if (!(e <= allowed))
+            reason = "mechanical energy " + std::to_string(e) + " J rose above its initial " +
+                     std::to_string(d.energy_reference) + " J in a scene nothing forces";
     }
     if (reason.empty()) {
         d.last_good = d.step;

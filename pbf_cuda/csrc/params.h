@@ -31,7 +31,12 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, rest_density, "particles.rest_density", 1.0f) /* rho0, kg/m^3 */                                      \
     S(float, mass0, "", 1.0f)                              /* level-0 mass m0, kg (full lattice density = rho0) */ \
     /* Time */                                                                                                     \
-    S(float, dt, "time.dt", 2.0f)                                                                                  \
+    S(float, dt, "time.dt", 2.0f)                          /* the first step; every step where cfl = 0, s */      \
+    S(float, reference_dt, "time.reference_dt", 2.0f)      /* the step kappa and xsph are stated at, s */          \
+    S(float, cfl, "time.cfl", 0.0f)                        /* > 0: dt = cfl min_i h_i / |v_i| each step */        \
+    S(float, dt_min, "time.dt_min", 1e-6f)                 /* bounds of the controlled step, s */                 \
+    S(float, dt_max, "time.dt_max", 1e3f)                                                                          \
+    S(float, max_cfl, "time.max_cfl", 1.0f)                /* max_i |v_i| dt / h_i above this is unstable */      \
     S(int, check_every, "time.check_every", 1)                                                                     \
     /* PBF (Macklin & Mueller 2013; paper eq. 1-4) */                                                              \
     S(int, iterations, "pbf.iterations", 4)                                                                        \
@@ -50,7 +55,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \
     S(float, divergence_tolerance, "pbf.divergence_tolerance", 0.0f)                                               \
     S(bool, gradient_correction, "pbf.gradient_correction", false)                                                 \
-    S(float, xsph, "pbf.xsph", 0.01f)                      /* XSPH viscosity c */                                  \
+    S(float, xsph, "pbf.xsph", 0.01f)                      /* XSPH viscosity c per reference_dt */                 \
     S(float, viscosity, "pbf.viscosity", 0.0f)             /* kinematic viscosity nu, m^2/s */                     \
     S(float, vorticity, "pbf.vorticity", 0.0f)             /* vorticity confinement epsilon, m/s */                \
     A(float, gravity, 3, "pbf.gravity", 0.0f, 0.0f, 0.0f)  /* constant body acceleration, m/s^2 */                 \
@@ -86,8 +91,8 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, initial_vapor_ratio, "atmosphere.initial_vapor_ratio", 0.5f)  /* k_v of section 5 (target v0(y)) */   \
     S(bool, vapor_relative, "", true)                      /* v0 from T0(y) (true) or the ground temperature */    \
     /* Temperature smoothing (section 4.1); kappa = 0 => no pass */                                                \
-    S(float, kappa, "", 0.0f)                                                                                      \
-    S(float, smoothing_beta, "", 0.0f)     /* kappa grad C_ii / |grad C_i|^2 of a full lattice (eq. 17), m^2 */    \
+    S(float, kappa, "", 0.0f)                                             /* kappa of eq. 17b per reference_dt */  \
+    S(float, smoothing_beta, "", 0.0f)     /* kappa grad C_ii / |grad C_i|^2 of a full lattice (eq. 17) at reference_dt, m^2 */ \
     A(bool, smooth_fields, 3, "", true, false, false)      /* temperature, vapor, cloud */                         \
     S(float, smoothing_epsilon, "smoothing.epsilon", 0.01f)  /* epsilon of eq. 13 relative to h^2 */               \
     /* Adaptivity (section 5.2) */                                                                                 \

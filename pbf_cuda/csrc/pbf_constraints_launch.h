@@ -324,7 +324,7 @@ XsphRiders viscosity_vorticity(SolverData& d, const PairSum& pair_sum, const Wal
     const RowNarrowing narrowing = list_narrowing(d);
     const WarmStartImpulse<Policy> warm = warm_start_impulse<Policy>(d, walls);
     parallel_for_in_order(d.n, d.list_pass_order(),
-                          ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, p.xsph, p.viscosity * dt,
+                          ViscosityVorticity<Policy, PairSum>{d.grid, fl, d.radii, p.h0, d.rates.xsph, p.viscosity * dt,
                                                               d.cp.inv_rest_density, vort, raw(d.vel), raw(d.density),
                                                               raw(d.vel_tmp), vort ? raw(d.omega) : nullptr, pair_sum,
                                                               narrowing, warm});

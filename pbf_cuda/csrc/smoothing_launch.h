@@ -17,14 +17,14 @@ inline bool smoothing_active(const Params& p) {
 }
 
 inline SmoothingPair smoothing_pair(const SolverData& d) {
-    return SmoothingPair{d.p.h0, d.cp.inv_rest_density, d.p.smoothing_beta, d.p.smoothing_epsilon};
+    return SmoothingPair{d.p.h0, d.cp.inv_rest_density, d.rates.smoothing_beta, d.p.smoothing_epsilon};
 }
 
 // The limiter's pass is needed where the weights can pass its cap S_cap (smoothing.h): mixed levels, or kappa above
 // S_cap (a lattice's S_i is about 0.9 kappa < kappa, so at kappa <= S_cap it would scale no pair and is skipped).
 template <class Policy>
 bool smoothing_limited(const SolverData& d) {
-    return d.smoothing && (!std::is_same<Policy, UniformPolicy>::value || d.p.kappa > kSmoothingWeightCap);
+    return d.smoothing && (!std::is_same<Policy, UniformPolicy>::value || d.rates.kappa > kSmoothingWeightCap);
 }
 
 // The limiter's weight sums S_i as a sum for the XSPH pass to take along (out == nullptr where none is needed).

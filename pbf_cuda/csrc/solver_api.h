@@ -69,6 +69,8 @@ struct StepStats {
     double density_excess_mean = 0.0;   // mean max(rho/rho0 - 1, 0): compression
     double density_deficit_mean = 0.0;  // mean max(1 - rho/rho0, 0): rarefaction
     double max_speed = 0.0;
+    double dt = 0.0;                    // the step in use, s (time_step.h)
+    double cfl = 0.0;                   // max_i |v_i| dt / h_i of the state
     double min_position[3] = {0, 0, 0};
     double max_position[3] = {0, 0, 0};
     std::vector<long long> level_counts;
@@ -96,6 +98,8 @@ public:
                            const float* vapor, const float* cloud, const float* mass, const uint32_t* id) = 0;
     virtual void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) = 0;
     virtual void set_clock(long long step, double time, uint32_t next_id) = 0;
+    virtual double time_step() const = 0;           // the step in use, s
+    virtual void set_time_step(double dt) = 0;      // a checkpoint's step (CFL-controlled runs)
     // Advances up to n steps; stops at the first step that fails its check and returns
     // "unstable|<step>|<last good step>|<reason>|<id,id,...>" (empty string: all n steps passed).
     // Errors travel as values, never as exceptions, across the backend boundary.

@@ -3,6 +3,7 @@
 // every step), the clock and the statistics. The phases (*_launch.h) read and write it; the step that runs
 // them in the paper's order is Solver::do_step (solver_impl.inl).
 #pragma once
+#include <cmath>
 #include <utility>
 
 #include "launch.h"
@@ -16,6 +17,7 @@
 #include "pbf_constraints.h"
 #include "solver_api.h"
 #include "thermodynamics.h"
+#include "time_step.h"
 
 namespace pbf {
 namespace PBF_BACKEND_NS {
@@ -60,10 +62,13 @@ struct SolverData {
     ConstraintParams cp{};      // pbf_constraints_launch.h: make_constraint_params
     AtmosphereParams atm{};     // thermodynamics_launch.h: make_atmosphere_params
     AdaptParams ap{};           // adaptivity_launch.h: make_adapt_params
+    StepRates rates{};          // time_step.h: the per-step coefficients at p.dt (the step in use)
     bool smoothing = false;     // smoothing_launch.h: smoothing_active
     std::size_t n = 0, nb = 0, capacity = 0;   // fluid particles, boundary particles, fluid slots
     long long step = 0, last_good = 0;
     double time = 0.0;
+    double energy_reference = std::nan("");  // the mechanical energy the check holds an unforced fluid to, J (set_fluid)
+    bool energy_settling = false;            // the reference still takes the first checked step's energy
     uint32_t next_id = 0;
     bool end_budget_is_next_start = false;   // the last step's end sums are this state's (diagnostics_launch.h)
 

@@ -40,6 +40,7 @@ public:
         d_.atm = make_atmosphere_params(p);
         d_.ap = make_adapt_params(p, d_.radii);
         d_.smoothing = smoothing_active(p);
+        d_.rates = step_rates(p);
         allocate_grid(d_);
     }
 
@@ -122,6 +123,9 @@ public:
         }
         d.next_id = n ? max_id + 1 : 0;
         commit_positions(d, d.pos, d.pos);  // wrap into the periodic box
+        d.energy_reference = n && energy_checked(d.p) ? mechanical_energy(d.p, reduce_budget(d, d.pos, true, false))
+                                                      : std::nan("");
+        d.energy_settling = true;
     }
 
     void set_boundary(std::size_t n, const float* pos3, const float* temperature, const float* vapor) override {
@@ -153,8 +157,9 @@ public:
             if (!d_.p.adaptive) do_step<UniformPolicy>();
             else if (d_.p.pair_kernel_mean_radius) do_step<MeanRadiusPolicy>();
             else do_step<AdaptivePolicy>();
+            const bool controlled = d_.p.cfl > 0.0f;   // the CFL-controlled step needs the state's max |v| / h
             const bool checked = d_.step % d_.p.check_every == 0;
-            if (checked && d_.n > 0) reduce_checks_into(d_, &raw(d_.step_sums)->checks);
+            if ((checked || controlled) && d_.n > 0) reduce_checks_into(d_, &raw(d_.step_sums)->checks);
             const StepSums sums = d_.step_sums[0];
             finish_adapt(d_, sums.adapt);   // the particle count after the step's splitting and merging, if any
             d_.clock.collect(d_.totals);
@@ -165,11 +170,23 @@ public:
             record_budget(d_, sums);
             take_list_size(d_, sums.list_size);
             if (checked) {
-                std::string failure = check(d_, sums.checks);
+                std::string failure = check(d_, sums.checks, sums.end);
                 if (!failure.empty()) return failure;
             }
+            if (controlled && d_.n > 0) set_time_step(next_time_step(d_.p, d_.p.dt, sums.checks.rate_max));
         }
         return std::string();
+    }
+
+    // The step in use, s: the scene's dt, or the CFL-controlled one (time_step.h). Setting it re-derives every
+    // per-step coefficient (the relaxations' c(dt), the atmosphere's dt and decays).
+    double time_step() const override { return d_.p.dt; }
+    void set_time_step(double dt) override {
+        if (!(dt > 0.0) || !std::isfinite(dt)) throw std::invalid_argument("time step must be positive and finite");
+        if (float(dt) == d_.p.dt) return;
+        d_.p.dt = float(dt);
+        d_.rates = step_rates(d_.p);
+        d_.atm = make_atmosphere_params(d_.p);
     }
 
     void adapt_now() override {
@@ -236,6 +253,7 @@ public:
         s.step = d.step;
         s.time = d.time;
         s.n_particles = d.n;
+        s.dt = d.p.dt;
         s.neighbor_lists = d.p.neighbor_list && !d.lists_given_up;
         s.neighbor_candidates = s.neighbor_lists && d.step > 0 ? d.list_entries : 0;
         s.neighbor_row_width = s.neighbor_lists && d.step > 0 ? d.nbr_width : 0;
@@ -247,6 +265,7 @@ public:
             s.density_excess_mean = r.excess_sum / double(d.n);
             s.density_deficit_mean = r.deficit_sum / double(d.n);
             s.max_speed = std::sqrt(double(r.speed2_max));
+            s.cfl = double(d.p.dt) * r.rate_max;
             for (int k = 0; k < 3; ++k) { s.min_position[k] = r.lo[k]; s.max_position[k] = r.hi[k]; }
         }
         s.level_counts.assign(std::size_t(std::max(d.p.max_level, 0) + 1), 0);
