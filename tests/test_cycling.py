@@ -179,11 +179,51 @@ def test_count_cycles_counts_built_cycles(n, peak, low, high):
     assert count_cycles([0.0, 0.02, 0.0, 0.02, 0.0, 0.02])["cycles"] == 0
 
 
+# The cycle as properties every run must have (no vote over seeds): clouds form in the first afternoon, the sky is
+# clear for a stretch of the night, and clouds come back after it. Thresholds far from the measured values, so a
+# rounding change cannot move a run across one (CPU scale, 144 columns; the adaptive twin, seeds 0-5 at a74c02b:
+# first peaks 0.19-0.90, clear nights of 13-16 samples at cover 0, the second afternoon back to 0.08-0.43).
+FORMED = 0.1          # the first afternoon's cover reaches this (measured 0.19 or more) ...
+CLEAR = 0.01          # ... then the night's cover stays at or below this (no more than one column) ...
+CLEAR_SAMPLES = 5     # ... for this many samples in a row (measured 13 or more) ...
+BACK = 0.02           # ... and then the cover is back at 3 columns or more (measured 0.08 or more)
+
+
+def cycle_phases(cover) -> dict:
+    """Where the cycle's phases of a cover series happen (sample indices, None where not reached): formed (first
+    cover >= FORMED), cleared (the end of the first CLEAR_SAMPLES-long clear stretch after it), back (first cover >=
+    BACK after that)."""
+    c = np.asarray(cover, dtype=np.float64)
+    out = {"formed": None, "cleared": None, "back": None}
+    hits = np.nonzero(c >= FORMED)[0]
+    if not len(hits):
+        return out
+    out["formed"] = int(hits[0])
+    run = 0
+    for k in range(out["formed"], len(c)):
+        run = run + 1 if c[k] <= CLEAR else 0
+        if run >= CLEAR_SAMPLES:
+            out["cleared"] = k
+            break
+    if out["cleared"] is None:
+        return out
+    back = np.nonzero(c[out["cleared"]:] >= BACK)[0]
+    out["back"] = int(out["cleared"] + back[0]) if len(back) else None
+    return out
+
+
+def test_cycle_phases_of_built_series():
+    day = [0.0] * 3 + [0.3, 0.6, 0.2] + [0.0] * 6 + [0.01, 0.05]
+    assert cycle_phases(day) == {"formed": 3, "cleared": 10, "back": 13}
+    assert cycle_phases([0.0, 0.05, 0.09])["formed"] is None                 # never formed
+    assert cycle_phases([0.5, 0.0, 0.02, 0.0, 0.0, 0.0, 0.3])["cleared"] is None   # no clear stretch
+    assert cycle_phases([0.5] + [0.0] * 5 + [0.015])["back"] is None          # one column's flicker is no cloud
+
+
 def cover_series(kind, seconds=3600.0, every=5, seed=0):
     """Cloud cover of the CPU cycle every `every` steps, for up to three model days (P = 1200 s); for the
     grid the water budget (C4) is checked at every sample too (the grid's budget test: one compilation for
-    both).  Three days, not two: with the vapour mixed, the adaptive twin in this 2,304-particle box can
-    skip an afternoon (docs/cycling.md).  The series stops at its first full cycle."""
+    both).  The series stops once the clouds are back after a clear night (cycle_phases)."""
     scene = load_scene("cycling").replace(**CPU_OVERRIDES)
     shape, _ = grid_for_scene(scene)
     if kind == "adaptive":
@@ -198,7 +238,7 @@ def cover_series(kind, seconds=3600.0, every=5, seed=0):
             s = sim.stats()
             assert abs(s["total_water"] - w0 - s["water_relaxation_total"] + s["rain_total"]) < 1e-6 * w0  # C4
             out.append(s["cloud_cover"])
-            if count_cycles(out)["cycles"]:
+            if cycle_phases(out)["back"] is not None:
                 break                                      # one full cycle: the rest of the run adds nothing
         assert s["rain_total"] > 1e-4 * w0 and abs(s["water_relaxation_total"]) > 1e-4 * w0
     else:
@@ -206,7 +246,7 @@ def cover_series(kind, seconds=3600.0, every=5, seed=0):
         for _ in range(steps // every):
             sim.step(every)
             out.append(particle_diagnostics(sim.state(), scene, resolution=shape)["cloud_cover"])
-            if count_cycles(out)["cycles"]:
+            if cycle_phases(out)["back"] is not None:
                 break
     return np.array(out)
 
@@ -221,19 +261,18 @@ def test_cpu_cycle_adapts_at_the_gpu_scenes_interval_in_model_time():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["particles", "adaptive", "grid"])
-def test_clouds_disappear_and_reappear_at_cpu_scale(kind):
-    # The adaptive twin is judged over three seeds, by the majority: in this 2,304-particle box whether a given
-    # seed's clouds come back within three model days is chance (seeds 0-5 at the solver of fc3f197: 1, 1, 1, 2,
-    # 0, 1 cycles; at 2822d8e, whose projection rounds its last step differently: 0, 1, 2, 1, 1, 2).
-    seeds = (0, 1, 2) if kind == "adaptive" else (0,)
-    cycled = 0
-    for seed in seeds:
-        counted = count_cycles(cover_series(kind, seed=seed))
-        assert counted["peak_cover"] > 0.1                     # clouds form in the first afternoon ...
-        assert counted["min_cover"] < 0.2 * counted["peak_cover"]   # ... vanish at night ...
-        cycled += counted["cycles"] >= 1                       # ... and come back the next day
-    assert cycled > len(seeds) / 2, (kind, cycled, len(seeds))
+@pytest.mark.parametrize("kind, seed", [("particles", 0), ("adaptive", 0), ("adaptive", 1), ("grid", 0)])
+def test_clouds_disappear_and_reappear_at_cpu_scale(kind, seed):
+    # Every run must cycle (no majority of seeds): whether the second day's clouds reach half the first day's peak
+    # (count_cycles, the study's count) is chance in this 2,304-particle box, that they come back at all is not.
+    cover = cover_series(kind, seed=seed)
+    phases = cycle_phases(cover)
+    shown = np.round(cover, 3).tolist()
+    assert phases["formed"] is not None, ("no clouds in the first afternoon", kind, seed, shown)
+    assert phases["cleared"] is not None, ("no clear night", kind, seed, shown)
+    assert phases["back"] is not None, ("no clouds after the night", kind, seed, shown)
+    # the phases follow the sun (P = 1200 s, a sample every 40 s: 30 per day): the clouds come back on a later day
+    assert phases["back"] - phases["formed"] > 15
 
 
 def test_report_shows_the_cycling_study(tmp_path):
