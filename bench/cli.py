@@ -116,7 +116,7 @@ def run(
     with refusals(particles):
         result = runs.execute(spec, runs_root, quiet=quiet)
     timings = result.timings()
-    from bench.export import effective_seed
+    from bench.store.identity import effective_seed
     typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
     typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {effective_seed(spec.identity())}, "
                f"backend {result.backend}, "

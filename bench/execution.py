@@ -40,7 +40,7 @@ import numpy as np
 
 from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_params
 from bench.store.files import save_frame, save_npz, sha256_file
-from bench.store.identity import RUN_FORMAT, RunSpec
+from bench.store.identity import RUN_FORMAT, RunSpec, effective_seed
 from bench.store.lock import locked
 from bench.store.manifest import (finished_files, info_checksum, manifest, now, quarantine, quarantine_entry,
                                   verify_run)
@@ -208,7 +208,8 @@ class _Run:
             self.device_bytes_before = self.adapter.device_bytes_in_use(spec)
             sim = self.adapter.create(spec)
             self.refused = False
-            self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, seed {spec.seed}, "
+            self.log(f"start {spec.solver} {spec.scene.name}: {spec.total_steps} steps, "
+                     f"seed {effective_seed(self.identity)}, "
                      f"backend {getattr(sim, 'backend', spec.backend)}")
         else:
             self.log(f"resume from checkpoint at step {resumed_from}")

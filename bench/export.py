@@ -45,6 +45,7 @@ from typing import Mapping
 import numpy as np
 
 from bench.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
+from bench.store.identity import effective_seed
 from bench.store.manifest import read_result, verify_run
 from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
 from bench.store.targets import (NETCDF_ATTR, ExportError, check_free_space, disk_error, foreign_entries,
@@ -163,17 +164,6 @@ def run_to_xarray(run_dir: str | Path, resolution=None, like=None, unverified: b
                      "backend": str(ident.get("backend")), "code": str(ident.get("code")),
                      "steps": int(ident.get("steps", 0))})
     return ds
-
-
-def effective_seed(identity: Mapping) -> int:
-    """The seed a run ran with: its own, else the scene's particles.seed."""
-    seed = identity.get("seed")
-    if seed is None:
-        seed = (identity.get("scene") or {}).get("particles", {}).get("seed", 0)
-    try:
-        return int(seed)
-    except (TypeError, ValueError):
-        return -1
 
 
 def combine_solvers(datasets: Mapping[str, object]):

@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.store.identity import effective_seed
 from bench.store.manifest import QUARANTINE, quarantine_folders, read_result, remove_entry
 from bench.store.safe import entry_kind, read_json
 
@@ -104,10 +105,9 @@ def run_entry(path: Path) -> RunEntry:
         except (OSError, ValueError, AttributeError):
             step = 0
     seed = None
-    if identity is not None:
-        seed = identity.get("seed")
-        if seed is None:
-            seed = ((identity.get("scene") or {}).get("particles") or {}).get("seed")
+    if isinstance(identity, dict):
+        seed = effective_seed(identity)
+        seed = None if seed < 0 else seed
     backend = str((result or {}).get("backend") or (identity or {}).get("backend") or "?")
     steps = (identity or {}).get("steps")
     return RunEntry(path=path, key=key, solver=solver, scene=scene, backend=backend,

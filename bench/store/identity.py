@@ -30,7 +30,7 @@ from bench.solvers import ADAPTERS, SOLVERS
 from pbf_cuda.files import json_default
 from pbf_cuda.scene import Scene
 
-__all__ = ["RunSpec", "code_version", "code_sources", "default_root", "is_checkout", "REPO_ROOT", "RUN_FORMAT"]
+__all__ = ["RunSpec", "effective_seed", "code_version", "code_sources", "default_root", "is_checkout", "REPO_ROOT", "RUN_FORMAT"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent.parent
 RUN_FORMAT = 2          # bump when the run directory layout or the loop's semantics change
@@ -127,6 +127,17 @@ def code_version(solver: str) -> str:
         digest.update(str(path.relative_to(REPO_ROOT)).encode() + b"\0")
         digest.update(path.read_bytes() + b"\0")
     return digest.hexdigest()[:16]
+
+
+def effective_seed(identity: dict) -> int:
+    """The seed a run ran with (from its identity): its own, else the scene's particles.seed (-1: unknown)."""
+    seed = identity.get("seed")
+    if seed is None:
+        seed = ((identity.get("scene") or {}).get("particles") or {}).get("seed", 0)
+    try:
+        return int(seed)
+    except (TypeError, ValueError):
+        return -1
 
 
 def _check_int(name: str, value, lo: int, hi: int, allow_none: bool = False):
