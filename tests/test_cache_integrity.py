@@ -256,7 +256,7 @@ def test_runs_list_show_prune_and_run_summary(toy_solver, tmp_path):  # noqa: F8
     listing = runner.invoke(app, ["runs", "--runs-root", str(root)])
     assert listing.exit_code == 0, listing.output
     assert "2 run(s)" in listing.output and "unfinished" in listing.output and "stable" in listing.output
-    folder = next(p for p in root.iterdir() if p.name.startswith("particles-growing"))
+    folder = Path(next(line for line in res.output.splitlines() if line.startswith("run directory:")).split(": ")[1])
     shown = runner.invoke(app, ["runs", "show", folder.name[:22], "--runs-root", str(root)])
     assert shown.exit_code == 0, shown.output
     assert "verified yes" in shown.output and f"seed     {seed}" in shown.output
