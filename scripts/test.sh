@@ -33,7 +33,8 @@ from pbf_cuda import _core
 if "cuda" in pbf_cuda.available_backends():
     print("gpu tests: run (CUDA backend built, device found)")
 elif not _core.cuda_built():
-    print("gpu tests: skipped: the CUDA backend was not built here (no nvcc at set-up; CLOUDPBF_CUDA=ON builds it)")
+    print("gpu tests: skipped: this build has no CUDA backend (set-up builds one where nvcc and a GPU are found, "
+          "or with CLOUDPBF_CUDA=ON)")
 elif _core.cuda_device_count() == 0:
     print("gpu tests: skipped: no CUDA device on this machine (they run on a machine with an NVIDIA GPU)")
 else:
@@ -46,7 +47,8 @@ EOF
 # oversubscribe them); an idle worker steals queued tests from a busy one (--dist worksteal), so the
 # smoke demo does not hold a queue behind it. CLOUDPBF_TEST_WORKERS=0 runs the suite in this process.
 workers=${CLOUDPBF_TEST_WORKERS:-$(nproc)}
-echo "test: running ${what} with ${workers} worker(s); ${gpu_note}"
+if [ "$workers" -gt 1 ]; then how="${workers} workers"; else how="one process"; fi
+echo "test: running ${what} in ${how}; ${gpu_note}"
 # pytest's own last line (passed, failed, skipped, seconds) closes the output.
 if [ "$workers" -gt 1 ]; then
   export OMP_NUM_THREADS=1
