@@ -30,6 +30,7 @@ of the folder.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import time
@@ -232,7 +233,7 @@ class _Run:
         try:
             if sim.step_count == 0 and (0 in diag_steps or 0 in snap_steps):
                 self._record(sim, self.adapter.step_row(sim), 0 in snap_steps)
-            while sim.step_count < total:
+            while sim.step_count < total and not self._reached_end(sim):
                 s0 = sim.step_count
                 targets = [total, s0 + chunk] + [s for s in diag_steps | snap_steps if s > s0]
                 if self.adapter.can_checkpoint:
@@ -240,6 +241,8 @@ class _Run:
                 if s0 < spec.warmup_steps:
                     targets.append(spec.warmup_steps)
                 n = min(targets) - s0
+                if spec.end_time is not None:
+                    n = min(n, _steps_toward(spec.end_time - float(sim.time), sim))
                 t0 = time.perf_counter()
                 try:
                     sim.step(n)
@@ -258,15 +261,18 @@ class _Run:
                 if s == spec.warmup_steps:
                     sim.reset_timings()
                     base_timings = {}
-                if s in diag_steps or s in snap_steps:
-                    self._record(sim, row, s in snap_steps)
-                if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and s < total:
+                last = s >= total or self._reached_end(sim)     # a run with an end time: its final step too
+                if s in diag_steps or s in snap_steps or (last and spec.end_time is not None):
+                    self._record(sim, row, s in snap_steps or (last and total in snap_steps))
+                if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and not last:
                     self._checkpoint(sim, {"step": s, "timings": merge_timings(base_timings, sim.timings()),
                                            "step_wall_s": step_wall, "timed_wall_s": timed_wall,
                                            "max_particles": max_particles})
                 bar.update(n)
                 if self.on_step is not None:
                     self.on_step(s)
+            if spec.end_time is not None and not self._reached_end(sim):
+                self.log(f"end_time {spec.end_time:g} s not reached in {total} steps (t = {float(sim.time):g} s)")
         except InstabilityError as exc:
             failure = exc
             self.log(f"UNSTABLE: {exc}")
@@ -278,6 +284,10 @@ class _Run:
         timings = merge_timings(base_timings, sim.timings())
         return self._finish(sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                             time.perf_counter() - started)
+
+    def _reached_end(self, sim) -> bool:
+        end = self.spec.end_time
+        return end is not None and float(sim.time) >= end * (1.0 - 1e-9)
 
     def _device_bytes(self) -> int | None:
         """Device memory the run holds at its end over what was in use before it made its simulation: with
@@ -343,6 +353,23 @@ class _Run:
         self.log("finished " + ("stable" if failure is None else f"UNSTABLE at step {failure.step}")
                  + f" ({step_wall:.2f} s in steps)")
         return RunResult(self.dir, info, cached=False)
+
+
+def _steps_toward(remaining: float, sim) -> int:
+    """How many steps can be taken at once without passing the first step that reaches `remaining` more seconds:
+    with the solver's step in use dt, all of them at dt; where the step is CFL-controlled (time.cfl > 0), the
+    fewest steps that reach it if every step grew by the control's largest factor (1.25).  1 where the
+    solver has no time_step."""
+    dt = float(getattr(sim, "time_step", 0.0) or 0.0)
+    if not dt > 0.0 or not remaining > 0.0:
+        return 1
+    if not getattr(sim.scene.time, "cfl", 0.0) > 0.0:
+        return max(1, math.ceil(remaining / dt * (1.0 - 1e-9)))
+    n, covered = 0, 0.0
+    while covered < remaining and n < 10**6:
+        covered += dt * 1.25 ** n
+        n += 1
+    return max(1, n)
 
 
 def _odd_entries(directory: Path) -> list[str]:

@@ -162,6 +162,9 @@ class RunSpec:
     warmup_steps: timings are reset after this many steps (first-step allocations left out)
     cells_per_spacing, resolution, dtype: grid options (see grid_baseline.GridSimulation)
     diagnostics_resolution: deposit grid (nx, ny, nz) for particle diagnostics (None: the statistics' default)
+    end_time: simulated time, s, at which the run ends (the first step that reaches it is its last, with a
+      diagnostics row and the final snapshot); `steps` is then an upper bound.  For runs whose step varies
+      (time.cfl > 0), so that every setting covers the same simulated time.  None: the run is `steps` long
     """
     solver: str
     scene: Scene
@@ -178,6 +181,7 @@ class RunSpec:
     resolution: tuple | None = None
     dtype: str | None = None
     diagnostics_resolution: tuple | None = None
+    end_time: float | None = None
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -204,6 +208,9 @@ class RunSpec:
                 object.__setattr__(self, name, tuple(int(v) for v in value))
         if self.dtype not in (None, "float32", "float64"):
             raise ValueError(f"dtype = {self.dtype!r}: allowed float32, float64")
+        if self.end_time is not None and (isinstance(self.end_time, bool) or not isinstance(self.end_time, (int, float))
+                                          or not 0.0 < float(self.end_time) < 1e12):
+            raise ValueError(f"end_time = {self.end_time!r}: expected a positive number of seconds")
 
     # ---- derived -----------------------------------------------------------------------------
     @property
@@ -240,6 +247,8 @@ class RunSpec:
                "record_steps": self.record_steps, "diagnostics": self.diagnostics,
                "warmup_steps": self.warmup_steps,
                "diagnostics_resolution": list(self.diagnostics_resolution) if self.diagnostics_resolution else None}
+        if self.end_time is not None:       # only when set: the keys of runs without it stay as they were
+            out["end_time"] = float(self.end_time)
         return {**out, **ADAPTERS[self.solver].options(self)}
 
     def identity(self) -> dict:
