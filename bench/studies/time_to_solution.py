@@ -1,0 +1,572 @@
+"""Time to solution at equal error: the cheapest settings of the particle solver that meet an error budget.
+
+For one cloud scene (``growing`` by default; ``cumulus``, ``cycling``) the study runs, each over ``seeds`` noise
+seeds and every one until the same simulated time T (the scene's ``time.steps`` x its dt; ``RunSpec.end_time``,
+so that CFL-controlled runs cover the same period as fixed-step ones):
+
+* the spacing x dt grid: the scale's spacings (at the GPU scale 68, 54, 43 and 34 m for ``growing``: the
+  scene's own spacing times 2, 2^(2/3), 2^(1/3), 1, halving the particle count each step) x fixed steps (1, 2,
+  4, 8 s), and the CFL-controlled step (``time.cfl`` 0.5, dt_max 8 s) at every spacing;
+* one factor at a time around today's defaults (the scene's spacing and dt, 2 s): ``pbf.iterations`` 2 and 8,
+  ``pbf.divergence_iterations`` 2 and 8, CFL-controlled steps (``time.cfl`` 0.25, 0.5, 0.8), and the scene's
+  adaptive twin (``<scene>_adaptive``, its finest level at the default spacing);
+* the reference, never one of the compared settings: the finest spacing at the smallest step (0.5 s) with
+  8 density and 8 projection iterations.
+
+Error of a setting (as in the adaptive study): its seed-mean series of cloud cover, cloudy volume and mean LWP,
+each interpolated onto N times evenly spaced in (0, T], against the reference's seed mean, relative L2 over
+the times; ``error`` is the mean of the three.  ``noise_floor`` is the error of half the reference's seeds
+against the other half, divided by sqrt(2) (the seed noise of an n-seed mean against another).  Cost:
+``wall_per_sim_s``, the solver's wall time per simulated second, the run loop's step time after the first
+step (allocations) over the simulated time after it, seed mean.  A setting enters the verdict only when every
+seed ran stably to T (``time.max_cfl``, the scene's, marks a step too large as unstable).
+
+The verdict.  For each error budget (the defaults' own error, half of it, twice it): the cheapest qualifying
+setting whose error is at most the budget; the front (no setting is both cheaper and more accurate,
+bench.pareto); and the speed-up ``speedup_at_default_error`` = the defaults' wall time per simulated second over
+the cheapest setting's at an error no larger than the defaults'.  Intervals: the seeds are resampled
+(:data:`BOOTSTRAP_REPLICATES` times, one draw for all settings and the reference, the whole analysis redone):
+5-95% of every setting's error and cost, of the speed-up, the share of resamples where it reaches
+:data:`GOAL_SPEEDUP` (the issue's target), and how often each setting is the cheapest one.
+
+Outputs (OUT/data, with the suffix ``_<scene>`` for a scene other than growing): ``time_to_solution.csv``
+(one row per setting), ``time_to_solution_runs.csv`` (one row per run), ``time_to_solution_series.csv`` (every
+run's series on the analysis times: what ``--from-data`` needs) and ``time_to_solution_verdict.json``; each
+names its device and commit.
+
+    cloudpbf time-to-solution [--scene growing|cumulus|cycling] [--seeds 8] [--scale gpu] [--estimate]
+    cloudpbf time-to-solution --from-data --out DIR
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import click
+import numpy as np
+import pandas as pd
+import typer
+
+from bench import runs
+from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
+from bench.pareto import pareto_mask
+from bench.studies.registry import ReportSection, Study, register
+from bench.studies.scales import scale_scene
+from pbf_cuda.scene import Scene, load_scene
+
+SCENES = ("growing", "cumulus", "cycling")
+SERIES = (("cover", "cloud_cover"), ("volume", "cloudy_volume"), ("lwp", "lwp_mean"))
+BOOTSTRAP_REPLICATES = 1000
+GOAL_SPEEDUP = 2.0
+"""The issue's target: at least 2x less wall time per simulated second than today's defaults at their error."""
+BUDGET_FACTORS = (("default", 1.0), ("half", 0.5), ("double", 2.0))
+"""The error budgets of the verdict, as multiples of the defaults' own error."""
+SMOKE_BOX = {"domain.size": [1200.0, 1600.0, 1200.0]}
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """What the study runs at one scale (spacings as multiples of the scale's default spacing)."""
+    spacing_ratios: tuple = (2.0, 2 ** (2 / 3), 2 ** (1 / 3), 1.0)
+    dts: tuple = (1.0, 2.0, 4.0)
+    grid_cfls: tuple = (0.5,)               # CFL-controlled steps at every spacing of the grid
+    cfls: tuple = (0.8,)                    # more CFL-controlled steps at the default spacing
+    dt_max: float = 8.0
+    iterations: tuple = (2,)
+    divergence_iterations: tuple = (2,)
+    adaptive: bool = True
+    reference_dt: float = 0.5
+    reference_iterations: int = 8
+    reference_divergence_iterations: int = 4
+    default_dt: float | None = None         # None: the scene's
+    end_time: float | None = None           # None: the scene's time.steps x its dt
+    times: int = 4                          # analysis times in (0, T] (each a deposit of every particle)
+    box: dict | None = None                 # scene overrides (smoke: a small box) and its default spacing
+    spacing: float | None = None
+    analysis_grid: tuple = (32, 32, 32)
+
+
+SIZES = {"gpu": Sizes(), "cpu": Sizes(),  # smoke: a small box, minutes of CPU (no adaptive twin: too coarse)
+         "smoke": Sizes(spacing_ratios=(1.26, 1.0), dts=(8.0,), grid_cfls=(), cfls=(0.5,), iterations=(2,),
+                        divergence_iterations=(), adaptive=False, reference_dt=4.0, default_dt=8.0, end_time=400.0,
+                        times=4, box=SMOKE_BOX, spacing=120.0, analysis_grid=(16, 16, 16))}
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One setting of the study (all its seeds share it)."""
+    name: str
+    group: str              # grid | iterations | divergence | cfl | adaptive | reference
+    spacing_m: float        # uniform spacing (adaptive: the finest level's)
+    dt: float               # the fixed step, or the first one where cfl > 0
+    cfl: float = 0.0
+    iterations: int = 0     # 0: the scene's
+    divergence_iterations: int = 0
+    adaptive: bool = False
+    default: bool = False   # today's defaults: the scene's spacing, dt and iterations
+
+
+def settings(base: Scene, sizes: Sizes) -> list[Setting]:
+    """Every setting of the study, for `base` (the scene at its scale), without duplicates."""
+    s0 = base.particles.spacing
+    dt0 = sizes.default_dt or base.time.dt
+    it0, div0 = base.pbf.iterations, base.pbf.divergence_iterations
+    out: dict[str, Setting] = {}
+
+    def add(group, spacing, dt, cfl=0.0, it=0, div=0, adaptive=False):
+        it, div = (0 if it == it0 else it), (0 if div == div0 else div)
+        name = f"{spacing:.3g}m-" + (f"cfl{cfl:g}" if cfl else f"dt{dt:g}")
+        name += (f"-it{it}" if it else "") + (f"-div{div}" if div else "") + ("-adaptive" if adaptive else "")
+        if group == "reference":
+            name = "reference-" + name
+        default = spacing == s0 and dt == dt0 and not (cfl or it or div or adaptive) and group != "reference"
+        out.setdefault(name, Setting(name, group, float(spacing), float(dt), float(cfl), int(it), int(div),
+                                     adaptive, default))
+
+    spacings = [s0 * r for r in sizes.spacing_ratios]
+    for s in spacings:
+        for dt in sorted(set(sizes.dts) | {dt0}):
+            add("grid", s, dt)
+        for c in sizes.grid_cfls:
+            add("grid", s, dt0, cfl=c)
+    for it in sizes.iterations:
+        add("iterations", s0, dt0, it=it)
+    for div in sizes.divergence_iterations:
+        add("divergence", s0, dt0, div=div)
+    for c in sizes.cfls:
+        add("cfl", s0, dt0, cfl=c)
+    if sizes.adaptive:
+        add("adaptive", s0, dt0, adaptive=True)
+    add("reference", min(spacings), sizes.reference_dt, it=sizes.reference_iterations,
+        div=sizes.reference_divergence_iterations)
+    return list(out.values())
+
+
+def scaled_scene(scene_name: str, scale_name: str, particles: int | None, sizes: Sizes,
+                 adaptive: bool = False) -> Scene:
+    """The scene (or its adaptive twin, at the same coarsening) as this scale runs it, at its default spacing."""
+    base = load_scene(scene_name)
+    if sizes.box is not None:
+        scaled = base.replace(**sizes.box, **{"particles.spacing": float(sizes.spacing)})
+    else:
+        scaled = scale_scene(base, particles if scale_name != "gpu" else None)
+    if not adaptive:
+        return scaled
+    twin = load_scene(f"{scene_name}_adaptive")
+    ratio = twin.particles.spacing / base.particles.spacing            # level 0 over the uniform spacing
+    keep = {k: v for k, v in (sizes.box or {}).items()}
+    return twin.replace(**keep, **{"particles.spacing": scaled.particles.spacing * ratio,
+                                   "atmosphere.heating_depth": scaled.atmosphere.heating_depth,
+                                   "atmosphere.heating_rate": scaled.atmosphere.heating_rate})
+
+
+def end_time(base: Scene, sizes: Sizes) -> float:
+    return float(sizes.end_time or base.time.steps * base.time.dt)
+
+
+def setting_scene(setting: Setting, scene_name: str, scale_name: str, particles: int | None, sizes: Sizes,
+                  base: Scene) -> tuple[Scene, int]:
+    """(scene, step cap) of a setting: spacing, step (fixed or CFL-controlled), iterations."""
+    t_end = end_time(base, sizes)
+    if setting.adaptive:
+        scene = scaled_scene(scene_name, scale_name, particles, sizes, adaptive=True)
+        scene = scene.replace(**{"particles.spacing": scene.particles.spacing * setting.spacing_m
+                                 / base.particles.spacing})
+    else:
+        scene = base.with_spacing(setting.spacing_m)
+    over = {"time.dt": setting.dt}
+    if setting.iterations:
+        over["pbf.iterations"] = setting.iterations
+    if setting.divergence_iterations:
+        over["pbf.divergence_iterations"] = setting.divergence_iterations
+    if setting.cfl:
+        dt_min = sizes.reference_dt / 4.0
+        over.update({"time.cfl": setting.cfl, "time.dt_min": dt_min, "time.dt_max": sizes.dt_max,
+                     "time.dt": min(max(setting.dt, dt_min), sizes.dt_max)})
+        cap = math.ceil(t_end / dt_min)
+    else:
+        cap = None
+    every_dt = setting.dt
+    over["time.snapshot_every"] = max(1, int(round(t_end / sizes.times / every_dt)))
+    steps = cap or max(1, math.ceil(t_end / setting.dt * (1 - 1e-9)))
+    over["time.steps"] = steps
+    return scene.replace(**over), steps
+
+
+def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None) -> tuple[list, list, Sizes, Scene]:
+    """(settings, [(setting, seed, RunSpec)], sizes, base scene) of the study at ctx's scale."""
+    sizes = sizes or getattr(ctx.scale, "time_to_solution", None) or SIZES[ctx.scale.name]
+    base = scaled_scene(scene_name, ctx.scale.name, ctx.scale.particles, sizes)
+    if sizes.default_dt:
+        base = base.replace(**{"time.dt": sizes.default_dt})
+    study = settings(base, sizes)
+    t_end = end_time(base, sizes)
+    entries = []
+    for setting in study:
+        scene, steps = setting_scene(setting, scene_name, ctx.scale.name, ctx.scale.particles, sizes, base)
+        for seed in range(seeds):
+            spec = runs.RunSpec("particles", scene, backend=ctx.backend, seed=seed, steps=steps, keep_snapshots=0,
+                                checkpoint_every=steps, diagnostics_resolution=sizes.analysis_grid,
+                                warmup_steps=1, end_time=t_end)
+            entries.append((setting, seed, spec))
+    return study, entries, sizes, base
+
+
+# H100 cost model of the estimate: ~1 ms per step at 100k particles, ~4 at 800k (issue #53); a run's set-up
+# (0.3 s + 1 us per particle) and its diagnostics rows (deposits on the host, ~1 us per particle each): guesses
+MS_FIXED, MS_PER_PARTICLE, S_PER_RUN, S_PER_PARTICLE = 0.57, 4.3e-6, 0.3, 1e-6
+
+
+def estimate(entries, sizes: Sizes, base: Scene) -> dict:
+    """Runs, steps, particle-steps and a rough GPU time (s) of the plan (CFL steps taken as the default step
+    times cfl / 0.67, the CFL number of the defaults at 34 m, within [dt_min, dt_max])."""
+    t_end = end_time(base, sizes)
+    steps = particle_steps = step_s = other_s = 0.0
+    for setting, _, spec in entries:
+        scene = spec.scene
+        n = scene.estimated_particles() * (2 ** scene.adaptive.max_level / 2 if scene.adaptive.enabled else 1)
+        dt = setting.dt if not setting.cfl else min(sizes.dt_max, max(sizes.reference_dt / 4, setting.dt * setting.cfl
+                                                                       / 0.67 * setting.spacing_m / base.particles.spacing))
+        k = t_end / dt
+        factor = 1 + 0.1 * (scene.pbf.iterations - 4) + 0.05 * (scene.pbf.divergence_iterations - 4)
+        steps += k
+        particle_steps += k * n
+        rows = min(k, spec.total_steps) / spec.diagnostic_every + 2
+        step_s += k * (MS_FIXED + MS_PER_PARTICLE * n) * factor / 1e3
+        other_s += S_PER_RUN + (1 + rows) * n * S_PER_PARTICLE
+    return {"runs": len(entries), "steps": int(steps), "particle_steps": float(particle_steps),
+            "step_s_estimate": float(step_s), "other_s_estimate": float(other_s),
+            "gpu_s_estimate": float(step_s + other_s), "simulated_s": t_end}
+
+
+def describe_estimate(est: dict) -> str:
+    return (f"{est['runs']} runs, {est['steps']:,} steps, {est['particle_steps']:.3g} particle-steps, "
+            f"{est['simulated_s']:g} s simulated each; on one H100 about {est['gpu_s_estimate'] / 60:.1f} min "
+            f"({est['step_s_estimate'] / 60:.1f} in steps, {est['other_s_estimate'] / 60:.1f} in set-up and "
+            f"diagnostics; a rough model)")
+
+
+# ---- analysis --------------------------------------------------------------------------------------
+def analysis_times(t_end: float, n: int) -> np.ndarray:
+    return np.linspace(0.0, t_end, int(n) + 1)[1:]
+
+
+def run_row(setting: Setting, seed: int, spec, result, t_end: float, device: str, commit: str) -> dict:
+    """One run's row: completeness, wall time per simulated second, step statistics."""
+    info = result.info
+    time_s = info.get("time_s")
+    complete = bool(result.stable) and time_s is not None and float(time_s) >= t_end * (1 - 1e-6)
+    stats = result.stats() if result.stable else pd.DataFrame()
+    first_dt = float(spec.scene.time.dt)          # the first step, fixed or CFL-controlled, is time.dt
+    timed = info.get("timed_steps") or 0
+    wall = (info.get("step_ms") or math.nan) * timed / 1e3
+    wall_per_sim_s = wall / (float(time_s) - first_dt) if complete and float(time_s) > first_dt else math.nan
+    reason = info.get("reason") or (None if complete else f"stopped at t = {time_s} s before {t_end:g} s")
+    return {"setting": setting.name, "seed": int(seed), "stable": bool(result.stable), "complete": complete,
+            "reason": reason, "steps": info.get("step"), "time_s": time_s, "wall_per_sim_s": wall_per_sim_s,
+            "ms_per_step": info.get("step_ms"), "particles": info.get("max_particles"),
+            "max_cfl": float(stats["cfl"].max()) if "cfl" in stats and len(stats) else math.nan,
+            "device": device or info.get("device"), "commit": commit, "run_dir": str(result.path)}
+
+
+def run_series(result, times: np.ndarray) -> dict | None:
+    """The run's cover, volume and LWP series interpolated onto `times` (None: unstable or no rows)."""
+    stats = result.stats() if result.stable else pd.DataFrame()
+    if not len(stats):
+        return None
+    t = stats["time_s"].to_numpy(float)
+    return {key: np.interp(times, t, stats[col].to_numpy(float)) if col in stats else np.full(len(times), np.nan)
+            for key, col in SERIES}
+
+
+def arrays(per_run: pd.DataFrame, series: pd.DataFrame, names: list[str], seeds: list[int]):
+    """(S, W): S[setting, seed, series, time] and W[setting, seed] (NaN where a run is incomplete)."""
+    times = np.sort(series["time_s"].unique()) if len(series) else np.zeros(0)
+    S = np.full((len(names), len(seeds), len(SERIES), len(times)), np.nan)
+    W = np.full((len(names), len(seeds)), np.nan)
+    index = {n: i for i, n in enumerate(names)}
+    seat = {s: j for j, s in enumerate(seeds)}
+    ok = {(r.setting, int(r.seed)) for r in per_run.itertuples() if _truthy(r.complete)}
+    for r in per_run.itertuples():
+        if (r.setting, int(r.seed)) in ok:
+            W[index[r.setting], seat[int(r.seed)]] = float(r.wall_per_sim_s)
+    for (name, seed), g in series.groupby(["setting", "seed"]):
+        if (name, int(seed)) in ok and name in index:
+            g = g.sort_values("time_s")
+            for k, (key, _) in enumerate(SERIES):
+                S[index[name], seat[int(seed)], k] = np.interp(times, g["time_s"].to_numpy(float), g[key].to_numpy(float))
+    return S, W
+
+
+def relative_errors(series: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(n, 3) relative L2 norms over time of `series` (n, 3, T) against `reference` (3, T); NaN where the
+    reference's series is all zero or a value is missing."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norm = np.linalg.norm(reference, axis=-1)
+        out = np.linalg.norm(series - reference, axis=-1) / norm
+    out[:, ~(norm > 0)] = np.nan
+    return out
+
+
+def errors_of(S: np.ndarray, ref: int, draw=None, ref_draw=None) -> np.ndarray:
+    """(n_settings, 3) errors of the seed-mean series (seeds `draw`) against the reference's (`ref_draw`)."""
+    draw = np.arange(S.shape[1]) if draw is None else draw
+    ref_draw = draw if ref_draw is None else ref_draw
+    with _quiet():
+        return relative_errors(np.nanmean(S[:, draw], axis=1), np.nanmean(S[ref, ref_draw], axis=0))
+
+
+@contextlib.contextmanager
+def _quiet():
+    """Means of all-NaN slices (settings without a stable seed) are NaN, silently."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def cheapest(error: np.ndarray, cost: np.ndarray, ok: np.ndarray, budget: float) -> int | None:
+    """Index of the cheapest setting with ok, finite cost and error <= budget (ties: the smaller error)."""
+    cand = [i for i in np.flatnonzero(ok) if np.isfinite(cost[i]) and np.isfinite(error[i]) and error[i] <= budget]
+    return min(cand, key=lambda i: (cost[i], error[i])) if cand else None
+
+
+def evaluate(S, W, qualified, ref: int, default: int, draw=None) -> dict:
+    """Errors, costs, the defaults' error, and the cheapest setting at each budget for one draw of seeds."""
+    e3 = errors_of(S, ref, draw)
+    error = e3.mean(axis=1)
+    with _quiet():
+        cost = np.nanmean(W[:, draw] if draw is not None else W, axis=1)
+    e0 = error[default]
+    picks = {name: cheapest(error, cost, qualified, f * e0) if np.isfinite(e0) else None for name, f in BUDGET_FACTORS}
+    pick = picks["default"]
+    speedup = cost[default] / cost[pick] if pick is not None and cost[pick] > 0 else math.nan
+    return {"e3": e3, "error": error, "cost": cost, "picks": picks, "speedup": speedup}
+
+
+def noise_floor(S, ref: int) -> float:
+    """The error of the mean of half the reference's seeds against the other half's, over sqrt(2)."""
+    seeds = np.flatnonzero(np.isfinite(S[ref, :, 0, :]).all(axis=-1)) if S.shape[-1] else []
+    if len(seeds) < 2:
+        return math.nan
+    half = len(seeds) // 2
+    e = errors_of(S, ref, draw=seeds[:half], ref_draw=seeds[half:2 * half])[ref]
+    return float(np.mean(e) / math.sqrt(2.0))
+
+
+def analyse(per_run: pd.DataFrame, series: pd.DataFrame, meta: pd.DataFrame, verdict_extra: dict,
+            replicates: int = BOOTSTRAP_REPLICATES, rng_seed: int = 0) -> tuple[pd.DataFrame, dict]:
+    """(per-setting frame, verdict) from the runs, their series and the settings' frame `meta` (one row per
+    setting: setting, group, default, spacing_m, dt, cfl, iterations, divergence_iterations, adaptive)."""
+    names = list(meta["setting"])
+    seeds = sorted(int(s) for s in per_run["seed"].unique())
+    S, W = arrays(per_run, series, names, seeds)
+    groups = list(meta["group"])
+    ref = groups.index("reference")
+    default = [bool(_truthy(v)) for v in meta["default"]].index(True)
+    complete = per_run.groupby("setting")["complete"].apply(lambda c: int(sum(_truthy(v) for v in c)))
+    stable_seeds = np.array([int(complete.get(n, 0)) for n in names])
+    qualified = (stable_seeds == len(seeds)) & (np.array(groups) != "reference")
+    point = evaluate(S, W, qualified, ref, default)
+    qualified &= np.isfinite(point["error"]) & np.isfinite(point["cost"])
+    point = evaluate(S, W, qualified, ref, default)
+    frame = meta.copy()
+    frame["stable_seeds"], frame["seeds"] = stable_seeds, len(seeds)
+    for k, (key, _) in enumerate(SERIES):
+        frame[f"e_{key}"] = point["e3"][:, k]
+    frame["error"], frame["wall_per_sim_s"] = point["error"], point["cost"]
+    with _quiet():      # the spread over seeds of the error of one seed against the reference's mean
+        reference = np.nanmean(S[ref], axis=0)
+        per_seed = np.stack([relative_errors(S[:, j], reference).mean(axis=1) for j in range(len(seeds))], axis=1)
+        frame["error_seed_spread"] = np.nanstd(per_seed, axis=1, ddof=1) if len(seeds) > 1 else np.nan
+    frame["qualified"] = qualified
+    frame["front"] = pareto_mask(np.where(qualified, point["cost"], np.nan), np.where(qualified, point["error"], np.nan))
+    boot = {"speedup": [], "errors": [], "costs": [], "picks": []}
+    rng = np.random.default_rng(rng_seed)
+    for _ in range(int(replicates) if len(seeds) > 1 else 0):
+        draw = rng.integers(0, len(seeds), len(seeds))
+        r = evaluate(S, W, qualified, ref, default, draw)
+        boot["speedup"].append(r["speedup"])
+        boot["errors"].append(r["error"])
+        boot["costs"].append(r["cost"])
+        boot["picks"].append(r["picks"]["default"])
+    if boot["errors"]:
+        with _quiet():
+            for col, key in (("error", "errors"), ("wall_per_sim_s", "costs")):
+                lo, hi = np.nanpercentile(np.array(boot[key]), [5, 95], axis=0)
+                frame[f"{col}_p05"], frame[f"{col}_p95"] = lo, hi
+        frame["cheapest_share"] = [float(np.mean([p == i for p in boot["picks"]])) for i in range(len(names))]
+    verdict = build_verdict(frame, point, default, boot, verdict_extra, noise_floor(S, ref), len(seeds))
+    return frame, verdict
+
+
+def build_verdict(frame: pd.DataFrame, point: dict, default: int, boot: dict, extra: dict, floor: float,
+                  n_seeds: int) -> dict:
+    rows = frame.to_dict("records")
+    clean = lambda v: None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v  # noqa: E731
+    brief = lambda i: None if i is None else {k: clean(rows[i].get(k)) for k in (  # noqa: E731
+        "setting", "group", "spacing_m", "dt", "cfl", "iterations", "divergence_iterations", "adaptive", "error",
+        "wall_per_sim_s", "error_p05", "error_p95", "wall_per_sim_s_p05", "wall_per_sim_s_p95")}
+    e0, c0 = point["error"][default], point["cost"][default]
+    budgets = []
+    for name, f in BUDGET_FACTORS:
+        i = point["picks"][name]
+        budgets.append({"budget": name, "factor": f, "error_budget": clean(float(f * e0)), "cheapest": brief(i),
+                        "speedup_vs_default": clean(float(c0 / point["cost"][i])) if i is not None else None})
+    s = clean(float(point["speedup"]))
+    speeds = np.array([v for v in boot["speedup"] if np.isfinite(v)])
+    interval = [float(np.percentile(speeds, 5)), float(np.percentile(speeds, 95))] if len(speeds) else None
+    p_goal = float(np.mean(speeds >= GOAL_SPEEDUP)) if len(speeds) else None
+    front = frame[frame["front"]].sort_values("wall_per_sim_s")
+    excluded = [{"setting": r["setting"], "stable_seeds": int(r["stable_seeds"]), "seeds": n_seeds}
+                for r in rows if not r["qualified"] and r["group"] != "reference"]
+    scene = extra.get("scene", "?")
+    if s is None or budgets[0]["cheapest"] is None:
+        text = (f"{scene}: no verdict: the defaults ({rows[default]['setting']}) have no measurable error or cost "
+                f"(stable in {rows[default]['stable_seeds']} of {n_seeds} seeds, error {clean(float(e0))}).")
+    else:
+        pick = budgets[0]["cheapest"]
+        text = (f"{scene}: at the defaults' own error {e0:.3f} ({rows[default]['setting']}, "
+                f"{c0 * 1e3:.3g} ms per simulated second), the cheapest setting is {pick['setting']} (error "
+                f"{pick['error']:.3f}, {pick['wall_per_sim_s'] * 1e3:.3g} ms per simulated second): {s:.2f}x less "
+                f"wall time per simulated second")
+        if interval:
+            text += (f" (5-95% over {len(speeds)} resamples of {n_seeds} seeds: {interval[0]:.2f}-{interval[1]:.2f}x; "
+                     f">= {GOAL_SPEEDUP:g}x in {100 * p_goal:.0f}%)")
+        text += f"; seed-noise floor of the error {floor:.3f}." if math.isfinite(floor) else "."
+    return {**extra, "metric": "error = mean relative L2 of the seed-mean cover, cloudy volume and mean LWP series "
+                               "against the reference's; cost = solver wall time per simulated second",
+            "default": brief(default), "budgets": budgets, "speedup_at_default_error": s,
+            "speedup_interval": interval, "p_speedup_at_least_goal": p_goal, "goal_speedup": GOAL_SPEEDUP,
+            "front": [brief(int(i)) for i in front.index], "excluded": excluded, "noise_floor": clean(floor),
+            "seeds": n_seeds, "replicates": len(boot["speedup"]), "verdict": text}
+
+
+def _truthy(value) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("true", "1", "yes")
+    return bool(value) and not (isinstance(value, float) and math.isnan(value))
+
+
+def meta_frame(study: list[Setting]) -> pd.DataFrame:
+    return pd.DataFrame([{"setting": s.name, "group": s.group, "default": s.default, "spacing_m": s.spacing_m,
+                          "dt": s.dt, "cfl": s.cfl, "iterations": s.iterations, "divergence_iterations":
+                          s.divergence_iterations, "adaptive": s.adaptive} for s in study])
+
+
+def suffix(scene_name: str) -> str:
+    return "" if scene_name == "growing" else f"_{scene_name}"
+
+
+def write_outputs(data: Path, scene_name: str, per_setting, per_run, series, verdict) -> None:
+    sfx = suffix(scene_name)
+    runs.write_csv(per_setting, data / f"time_to_solution{sfx}.csv")
+    runs.write_csv(per_run, data / f"time_to_solution_runs{sfx}.csv")
+    runs.write_csv(series, data / f"time_to_solution_series{sfx}.csv")
+    runs.atomic_write_json(data / f"time_to_solution_verdict{sfx}.json", verdict)
+
+
+def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, replicates: int = BOOTSTRAP_REPLICATES,
+                         sizes: Sizes | None = None) -> dict:
+    """Run (or read) the study for one scene; write its CSVs and verdict into ctx.data."""
+    if scene_name not in SCENES:
+        raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
+    if not 2 <= int(seeds) <= 100:
+        raise ValueError(f"seeds = {seeds}: allowed 2..100 (seed means and intervals need at least two)")
+    study, entries, sizes, base = plan(ctx, scene_name, int(seeds), sizes)
+    est = estimate(entries, sizes, base)
+    ctx.say(f"time-to-solution {scene_name} ({ctx.scale.name}, {len(study)} settings x {seeds} seeds): "
+            + describe_estimate(est))
+    results = ctx.run_parallel([e[2] for e in entries], f"time-to-solution {scene_name}")
+    device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
+    t_end = end_time(base, sizes)
+    times = analysis_times(t_end, sizes.times)
+    rows, series = [], []
+    for (setting, seed, spec), result in zip(entries, results):
+        rows.append(run_row(setting, seed, spec, result, t_end, device, ctx.commit))
+        sig = run_series(result, times) if rows[-1]["complete"] else None
+        if sig is not None:
+            series += [{"setting": setting.name, "seed": seed, "time_s": float(t), **{k: float(sig[k][j]) for k, _ in SERIES}}
+                       for j, t in enumerate(times)]
+    per_run = pd.DataFrame(rows)
+    series = pd.DataFrame(series, columns=["setting", "seed", "time_s"] + [k for k, _ in SERIES])
+    extra = {"scene": scene_name, "scale": ctx.scale.name, "simulated_s": t_end, "device": device,
+             "commit": ctx.commit, "estimate": est}
+    per_setting, verdict = analyse(per_run, series, meta_frame(study), extra, replicates)
+    per_setting["device"], per_setting["commit"] = device, ctx.commit
+    write_outputs(ctx.data, scene_name, per_setting, per_run, series, verdict)
+    return {"settings": per_setting, "runs": per_run, "series": series, "verdict": verdict}
+
+
+def rebuild(data: Path, scene_name: str = "growing", replicates: int = BOOTSTRAP_REPLICATES) -> dict:
+    """The verdict again from the study's CSVs in `data` (nothing run); device and commit those of the runs."""
+    import json
+    sfx = suffix(scene_name)
+    paths = {k: Path(data) / f"time_to_solution{k}{sfx}.csv" for k in ("", "_runs", "_series")}
+    for p in paths.values():
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: missing (run `cloudpbf time-to-solution --scene {scene_name}` first)")
+    old = Path(data) / f"time_to_solution_verdict{sfx}.json"
+    extra = json.loads(old.read_text()) if old.is_file() else {"scene": scene_name}
+    extra = {k: extra[k] for k in ("scene", "scale", "simulated_s", "device", "commit", "estimate") if k in extra}
+    per_setting = pd.read_csv(paths[""])
+    meta = per_setting[["setting", "group", "default", "spacing_m", "dt", "cfl", "iterations",
+                        "divergence_iterations", "adaptive"]]
+    per_run, series = pd.read_csv(paths["_runs"]), pd.read_csv(paths["_series"])
+    frame, verdict = analyse(per_run, series, meta, extra, replicates)
+    for col in ("device", "commit"):
+        frame[col] = per_setting[col] if col in per_setting else extra.get(col)
+    write_outputs(Path(data), scene_name, frame, per_run, series, verdict)
+    return {"settings": frame, "verdict": verdict}
+
+
+def time_to_solution_command(
+    scene: Annotated[str, typer.Option(help="growing (default), cumulus or cycling")] = "growing",
+    seeds: Annotated[int, typer.Option(min=2, max=100, help="noise seeds per setting (>= 8 for the verdict at "
+                                                               "the GPU scale)")] = 8,
+    resamples: Annotated[int, typer.Option(min=0, max=100000, help="resamples of the seeds for the intervals")
+                         ] = BOOTSTRAP_REPLICATES,
+    estimate_only: Annotated[bool, typer.Option("--estimate", help="print the plan's runs, steps and a rough GPU "
+                                                                   "time, run nothing")] = False,
+    from_data: Annotated[bool, typer.Option("--from-data", help="run nothing: rebuild the verdict from the "
+                                                                 "study's CSVs in OUT/data")] = False,
+    out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
+    backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    quiet: QuietOpt = False, gpus: GpusOpt = None,
+) -> None:
+    """Time to solution at equal error: dt (fixed, CFL), iterations, spacing, adaptivity; the cheapest settings."""
+    if scene not in SCENES:
+        raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
+    if from_data:
+        try:
+            result = rebuild(Path(out) / "data", scene, resamples)
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            raise click.UsageError(str(exc)) from None
+        typer.echo(result["verdict"]["verdict"])
+        return
+    with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
+        with refusals():
+            if estimate_only:
+                study, entries, sizes, base = plan(ctx, scene, seeds)
+                est = estimate(entries, sizes, base)
+                typer.echo(f"{len(study)} settings x {seeds} seeds: " + describe_estimate(est))
+                typer.echo(", ".join(s.name for s in study))
+                return
+            result = run_time_to_solution(ctx, scene, seeds, resamples)
+    cols = ["setting", "group", "stable_seeds", "wall_per_sim_s", "error", "error_p05", "error_p95", "front"]
+    frame = result["settings"]
+    typer.echo(frame[[c for c in cols if c in frame]].to_string(index=False))
+    typer.echo(result["verdict"]["verdict"])
+
+
+register(Study("time-to-solution", order=47, sections=("time_to_solution",),
+               report=(ReportSection("time_to_solution", "Time to solution at equal error",
+                                     "bench.report.time_to_solution:section", 8),),
+               outputs=("time_to_solution.csv", "time_to_solution_runs.csv", "time_to_solution_series.csv",
+                        "time_to_solution_verdict.json"),
+               scale={"time_to_solution": SIZES},
+               command=time_to_solution_command))
