@@ -739,3 +739,23 @@ def test_table1_shows_the_best_variant_row_beside_the_paper_rows(tmp_path):
     assert "adaptive (thermal-68m)" in sections["table1"] and f"{1e3 * 140000 / 5.0:.4g}" in sections["table1"]
     assert "step-time ratio non-adaptive / adaptive" in sections["adaptive"] and "<td>2</td>" in sections["adaptive"]
     assert "speedup" not in sections["adaptive"]
+
+
+def test_stress_usable_needs_the_converged_reference_and_never_an_unstable_run(tmp_path):
+    """usable = stable and within the bound of the converged reference (the maps and the card say which bound);
+    a row marked unstable is never shown as usable, even where the CSV says usable."""
+    data = tmp_path / "data"
+    data.mkdir()
+    pd.DataFrame({"parameter": "dt", "value": [1.0, 2.0, 4.0, 8.0], "stable": [True, True, True, False],
+                  "usable": [True, True, False, True], "dt": [1.0, 2.0, 4.0, 8.0],
+                  "reference_dt": [0.25, 0.5, 1.0, 2.0], "reference_iterations": 16,
+                  "reference_error": [0.01, 0.05, 0.6, None], "density_error_max": 0.001,
+                  "device": DEVICE, "commit": COMMIT}).to_csv(data / "stress.csv", index=False)
+    sections = _sections(build_report(tmp_path).read_text())
+    expected = ("Largest usable dt: 2 s (usable: error against a converged reference (dt/4, 16 iterations, same "
+                "simulated time) &lt;= 0.1")
+    assert expected in sections["stress"] and expected in sections["summary"]
+    assert "largest stable dt (no blow-up, accuracy aside): 4 s" in sections["stress"]
+    from bench.report.build import stress_frame
+    frame = stress_frame(pd.read_csv(data / "stress.csv"))
+    assert frame["usable"].tolist() == [True, True, False, False]      # 8 s: unstable, whatever the CSV says

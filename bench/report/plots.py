@@ -378,9 +378,10 @@ STRIP_LABELS = {"dt": "time step dt (s)", "iterations": "PBF iterations", "heati
                 "alpha_dt": "alpha dt (eq. 9)"}
 
 
-def stability_map(df: pd.DataFrame) -> str:
+def stability_map(df: pd.DataFrame, stable_label: str = "stable, not usable") -> str:
     """One row per swept parameter: values on a log axis; green usable, orange stable but not usable
-    (the `usable` column, when present), red unstable."""
+    (the `usable` column, when present; `stable_label` names them), red unstable. Only the kinds present are
+    in the legend."""
     params = [p for p in dict.fromkeys(df["parameter"]) if not str(p).startswith("dt x ")]
     fig, axes = plt.subplots(len(params), 1, figsize=(8, 1.3 * len(params) + 0.8), squeeze=False)
     for ax, param in zip(axes[:, 0], params):
@@ -388,11 +389,11 @@ def stability_map(df: pd.DataFrame) -> str:
         values = pd.to_numeric(g["value"], errors="coerce")
         stable = g["stable"].map(_truthy)
         usable = g["usable"].map(_truthy) if "usable" in g.columns else stable
-        ax.scatter(values[stable & usable], np.zeros((stable & usable).sum()), s=90, color="#2ca02c", marker="o",
-                   label="usable")
-        ax.scatter(values[stable & ~usable], np.zeros((stable & ~usable).sum()), s=90, color="#ff9f1c",
-                   marker="s", label="stable, not usable")
-        ax.scatter(values[~stable], np.zeros((~stable).sum()), s=90, color="#d62728", marker="X", label="unstable")
+        for mask, colour, marker, label in ((stable & usable, "#2ca02c", "o", "usable"),
+                                            (stable & ~usable, "#ff9f1c", "s", stable_label),
+                                            (~stable, "#d62728", "X", "unstable")):
+            if mask.any():
+                ax.scatter(values[mask], np.zeros(mask.sum()), s=90, color=colour, marker=marker, label=label)
         for v, ok, reason in zip(values, stable, g.get("reason", pd.Series([""] * len(g)))):
             if not ok and isinstance(reason, str) and reason:
                 ax.annotate(reason[:28], (v, 0), xytext=(0, 9), textcoords="offset points", fontsize=6,
@@ -403,7 +404,11 @@ def stability_map(df: pd.DataFrame) -> str:
         ax.set_ylabel(STRIP_LABELS.get(param, param), rotation=0, ha="right", va="center")
         ax.set_ylim(-1, 1.6)
         ax.grid(True, axis="x", which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper left", ncol=2)
+    handles = {}
+    for ax in axes[:, 0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    axes[0, 0].legend(handles.values(), handles.keys(), fontsize=7, loc="upper left", ncol=3)
     axes[-1, 0].set_xlabel("parameter value (units in the row label)")
     fig.tight_layout()
     return to_data_uri(fig)

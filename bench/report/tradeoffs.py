@@ -151,9 +151,9 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
         _missing(sec, "stress.csv (stability sweep)", "stress", inp.out)
         return
     df = stress_frame(df)
-    from bench.studies.stress import ENERGY_JUMP_LIMIT, usable_bound_text
+    from bench.studies.stress import ENERGY_JUMP_LIMIT
     checked = "reference_error" in df.columns
-    bound = usable_bound_text() if checked else "not determined: this stress.csv has no error against a converged reference"
+    bound = usable_bound(df) if checked else "not determined: this stress.csv has no error against a converged reference"
     if not checked:
         sec.add("note", "This stress.csv predates the converged-reference check: no case is shown as usable (a stable "
                         "run can still have lost the scene, e.g. a fluid collapsed onto the floor). Rerun the stress "
@@ -167,7 +167,8 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
         sec.add("note", "no 2-D map in this stress.csv (made by an older version of the stress study); "
                         "rerun it for the dt x iterations and dt x heating-rate maps.", level="missing",
                 command=_command("stress", inp.out))
-    sec.add("image", plots.stability_map(df), caption=(
+    sec.add("image", plots.stability_map(df, "stable, not usable" if checked else "stable (usable not checked)"),
+            caption=(
         f"One parameter at a time. Green: usable ({bound}); orange: ran to the end but not usable"
         + ("" if checked else " or not checked") + "; red: stopped as unstable (reason shown)."))
     limit = stress_limits(df)
@@ -215,9 +216,21 @@ def stress_frame(df: pd.DataFrame) -> pd.DataFrame:
     return df
 
 
+def usable_bound(df: pd.DataFrame) -> str:
+    """What usable means in this stress.csv: the bound's text with the reference's dt divisor and iterations
+    read from the rows (reference_dt, reference_iterations)."""
+    from bench.studies.stress import usable_bound_text
+    dt, ref_dt = (pd.to_numeric(df.get(c), errors="coerce") for c in ("dt", "reference_dt"))
+    iterations = pd.to_numeric(df.get("reference_iterations"), errors="coerce").dropna()
+    ratio = (dt / ref_dt).dropna()
+    if not len(ratio) or not len(iterations):
+        return usable_bound_text()
+    return usable_bound_text(round(float(ratio.median()), 3), int(iterations.iloc[0]))
+
+
 def stress_limits(df: pd.DataFrame) -> str:
     """'Largest usable dt (bound): ... s; largest stable dt: ... s.' from the 1-D dt cases of a stress_frame."""
-    from bench.studies.stress import largest_stable_dt, usable_bound_text
+    from bench.studies.stress import largest_stable_dt
     dt = stress_frame(df[df["parameter"] == "dt"]) if "dt" in set(df["parameter"]) else df.iloc[:0]
     if not len(dt):
         return ""
@@ -225,8 +238,8 @@ def stress_limits(df: pd.DataFrame) -> str:
     found = largest_stable_dt(dt)
     usable, stable = found["largest_usable_dt"], found["largest_stable_dt"]
     if "reference_error" in df.columns:
-        text = (f"Largest usable dt: " + (f"{usable:g} s" if usable is not None else "none of the tried dt")
-                + f" (usable: {usable_bound_text()}); ")
+        text = ("Largest usable dt: " + (f"{usable:g} s" if usable is not None else "none of the tried dt")
+                + f" (usable: {usable_bound(df)}); ")
     else:
         text = "Largest usable dt: not determined (no converged-reference check in this data); "
     text += (f"largest stable dt (no blow-up, accuracy aside): {stable:g} s" if stable is not None
