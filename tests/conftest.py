@@ -74,6 +74,32 @@ SLOW = {
         "test_analysis_leaves_out_a_variant_that_blew_up_in_two_seeds",                   # 6
     ),
     "test_shallow_cumulus.py": ("test_the_study_at_the_smoke_scale_writes_its_tables_and_renders_or_notes",),  # 13
+    # The grid baseline's tests (jax compiles each new shape): measured on the 2-core machine with other jobs
+    # sharing its cores, one process (seconds inflated 2-3x); marked where they took 15 s or more.
+    "test_grid_simulation.py": (
+        "test_instability_is_reported",                                                   # 128
+        "test_seed_moves_the_heating_pattern",                                            # 33
+        "test_phase_timing_mode_gives_the_same_state",                                    # 24
+    ),
+    "test_grid_physics.py": (
+        "test_total_water_conserved_with_heating_and_condensation",                       # 82
+        "test_uniform_vapor_cloud_layer_base_at_lcl",                                     # 55
+        "test_stratified_wave_frequency",                                                 # 37
+        "test_resting_stratified_atmosphere_stays_at_rest",                               # 33
+        "test_parcel_scene_rising_air_condenses_at_its_lcl",                              # 26
+        "test_phase_transition_matches_ode_and_conserves",                                # 22
+    ),
+    "test_grid_projection.py": (
+        "test_poisson_solve_matches_dense_matrix",                                        # 74
+        "test_divergence_after_projection",                                               # 35
+        "test_gradient_is_removed_and_solenoidal_field_kept",                             # 26
+    ),
+    "test_grid_bench.py": ("test_writes_then_appends_rows",),                             # 75
+    "test_grid_compat.py": ("test_van_leer_with_a_wall_runs_and_conserves",),             # 32
+    "test_grid_noise.py": ("test_heating_pattern_matches_reference",),                    # 18
+    "test_export.py": ("test_cli_export_grid_run_netcdf",),                               # 64
+    "test_cycling.py": ("test_grid_heating_follows_the_time_of_day",),                    # 25
+    "test_cbl.py": ("test_mixed_layer_follows_encroachment",),                            # 39
 }
 
 
