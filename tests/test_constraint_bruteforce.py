@@ -19,7 +19,7 @@ from pbf_bruteforce import (density_lambda, jacobian, mixed_cluster, one_step, p
 SETTINGS = settings(max_examples=20, deadline=None, derandomize=True)
 BASE = dict(thermodynamics=False, unilateral=False, scorr_k=0.0, xsph=0.0, vorticity=0.0, viscosity=0.0, k_p=0.0,
             merge_threshold=0.0, remove_column_drift=False, gradient_correction=False, gravity=[0.0, 0.0, 0.0],
-            max_velocity=1e9)
+            max_velocity=1e9, max_cfl=1e9)
 
 
 def scene():
