@@ -512,15 +512,26 @@ def test_header_names_every_device_commit_and_scale_of_the_sections(tmp_path):
 
 def test_a_time_to_solution_card_appears_when_its_data_exists(tmp_path):
     (tmp_path / "data").mkdir()
-    (tmp_path / "data" / "sweep.csv").write_text("method\nparticles\n")
     before = _sections(build_report(tmp_path).read_text())["summary"]
     assert "card-time_to_solution" not in before
-    (tmp_path / "data" / "time_to_solution.json").write_text(json.dumps({
-        "answer": "particles reach the grid's cover error 2.1x sooner", "interval": [1.4, 3.0],
-        "files": ["sweep.csv"]}))
+    pd.DataFrame({"setting": ["default", "coarse", "cfl"], "wall_per_sim_s": [0.02, 0.008, 0.01],
+                  "error": [0.10, 0.09, 0.2], "front": [False, True, True]}).to_csv(
+        tmp_path / "data" / "time_to_solution.csv", index=False)
+    cheapest = {"setting": "coarse", "error": 0.09, "wall_per_sim_s": 0.008}
+    (tmp_path / "data" / "time_to_solution_verdict.json").write_text(json.dumps({
+        "scene": "growing", "default": {"setting": "default", "error": 0.10, "wall_per_sim_s": 0.02},
+        "budgets": [{"factor": 1.0, "cheapest": cheapest}], "speedup_at_default_error": 2.5,
+        "speedup_interval": [1.8, 3.1], "seeds": 8, "verdict": "growing: ..."}))
+    (tmp_path / "data" / "time_to_solution_verdict_cumulus.json").write_text(json.dumps({
+        "scene": "cumulus", "default": {"setting": "default", "error": 0.2},
+        "budgets": [{"factor": 1.0, "cheapest": cheapest}], "speedup_at_default_error": 1.1,
+        "speedup_interval": [0.9, 1.3], "verdict": "cumulus: ..."}))
     summary = _sections(build_report(tmp_path).read_text())["summary"]
-    assert 'id="card-time_to_solution"' in summary and "2.1x sooner" in summary and "Interval: 1.4-3." in summary
-    assert 'href="data/time_to_solution.json"' in summary and 'href="data/sweep.csv"' in summary
+    card = summary[summary.index('id="card-time_to_solution"'):]
+    assert "growing: coarse 2.50x faster [1.80, 3.10] than the defaults (default) at their error 0.1" in card
+    assert "cumulus: coarse no difference measured (1.10x, 5-95% over resampled seeds 0.90-1.30x)" in card
+    assert 'href="data/time_to_solution_verdict.json"' in card and 'href="data/time_to_solution.csv"' in card
+    assert 'href="#time_to_solution"' in card and card.count("<img ") == 1
 
 
 def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):

@@ -2,10 +2,9 @@
 interval it holds with, and links to the section and the data files behind it.
 
 Cards, in order: Table 1 against the paper, the adaptive front (adaptive-pareto, else the sweep), particles
-against the grid, the stability map, and time to solution, a slot shown only when its data exists
-(``OUT/data/time_to_solution.json``: ``answer``, optional ``detail``, ``interval`` [lo, hi], ``figure``, a PNG
-under data/ to show, and ``files``, the data files to link; the card links the section ``time_to_solution``
-when a study registers one).  A card without data says which command produces it.
+against the grid, the stability map, and time to solution at equal error, shown only when the
+time-to-solution study's verdicts exist (``time_to_solution_verdict[_scene].json``).  A card without data
+says which command produces it.
 
 Verdict rules: a speed-up against the paper only where the particle counts match (timing.paper_comparison);
 every speed-up beside its interval, and "no difference measured" where the interval holds 1 (or 0 for a
@@ -52,15 +51,24 @@ def _missing(card: Card, inp: Inputs, what: str, key: str) -> Card:
     return card
 
 
-def _ratio_words(ci: Interval, what: str = "") -> str:
-    """'1.60x faster [1.30, 1.90]' or 'no difference measured (1.05x, interval 0.8-1.3x)'."""
+def _ratio_words(ci: Interval, what: str = "", interval: str = f"{100 * LEVEL:g}% interval") -> str:
+    """'1.60x faster [1.30, 1.90]' or 'no difference measured (1.05x, 95% interval 0.8-1.3x)'; `interval` names
+    the interval (a t-interval, or the 5-95% of resampled seeds)."""
     if describes_no_difference(ci):
-        bounds = (f", {100 * LEVEL:g}% interval {ci.lo:.2f}-{ci.hi:.2f}x" if np.isfinite(ci.lo)
-                  else ", no interval")
+        bounds = (f", {interval} {ci.lo:.2f}-{ci.hi:.2f}x" if np.isfinite(ci.lo) else ", no interval")
         return f"no difference measured ({ci.mean:.2f}x{bounds})"
     if ci.mean >= 1:
         return f"{ci.mean:.2f}x faster{what} [{ci.lo:.2f}, {ci.hi:.2f}]"
     return f"{1 / ci.mean:.2f}x slower{what} [{1 / ci.hi:.2f}, {1 / ci.lo:.2f}]"
+
+
+RESAMPLED = "5-95% over resampled seeds"
+
+
+def _resampled(value, interval, seeds) -> Interval:
+    """A speed-up with its 5-95% interval over resampled seeds (NaN bounds where the study recorded none)."""
+    lo, hi = (float(v) for v in interval) if interval else (math.nan, math.nan)
+    return Interval(float(value), lo, hi, int(seeds or 0))
 
 
 # ---- Table 1 ----------------------------------------------------------------------------------------------
@@ -117,8 +125,9 @@ def _pareto_card(inp: Inputs, card: Card, titles: dict) -> Card | None:
             parts.append(f"{scene}: {v.get('verdict', 'no verdict')}")
             continue
         interval = best.get("speedup_interval")
-        ci = Interval(float(speed), *(map(float, interval) if interval else (math.nan, math.nan)), n=best.get("seeds") or 0)
-        parts.append(f"{scene}: best variant {best.get('name', '?')} {_ratio_words(ci)} at equal error "
+        ci = _resampled(speed, interval, best.get("seeds"))
+        parts.append(f"{scene}: best variant {best.get('name', '?')} {_ratio_words(ci, interval=RESAMPLED)} "
+                     f"at equal error "
                      f"{best.get('error', math.nan):.3g} (±{best.get('error_seed_spread', math.nan):.2g} over seeds)")
         details.append(f"{scene}: {best.get('ms_per_step', math.nan):.3g} against "
                        f"{best.get('uniform_ms_at_equal_error', math.nan):.3g} ms per step (means over "
@@ -228,28 +237,49 @@ def stability_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
     return card
 
 
-# ---- time to solution (a slot: shown when its data exists) --------------------------------------------------
+# ---- time to solution (shown when its data exists) ----------------------------------------------------------
+TTS_SCENES = ("growing", "cumulus", "cycling")
+
+
 def time_to_solution_card(inp: Inputs, env: dict | None, titles: dict) -> Card | None:
-    path = inp.data / "time_to_solution.json"
-    if not path.is_file():
-        return None
-    card = Card("time_to_solution", "Time to solution")
-    try:
+    """The time-to-solution study's verdicts (time_to_solution_verdict[_scene].json, bench.studies.time_to_solution):
+    the defaults' wall time per simulated second over the cheapest setting's at the defaults' own error, with its
+    5-95% interval over resampled seeds; None where the study did not run."""
+    card = Card("time_to_solution", "Time to solution at equal error")
+    parts, figure = [], None
+    for scene in TTS_SCENES:
+        sfx = "" if scene == "growing" else f"_{scene}"
+        path = inp.data / f"time_to_solution_verdict{sfx}.json"
+        if not path.is_file():
+            continue
         v = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        card.level, card.answer = "missing", f"could not read time_to_solution.json: {exc}"
-        return card
-    card.answer = str(v.get("answer", "no answer recorded"))
-    interval = v.get("interval")
-    card.detail = str(v.get("detail", "")) + (f" Interval: {interval[0]:.3g}-{interval[1]:.3g}."
-                                              if isinstance(interval, (list, tuple)) and len(interval) == 2 else "")
-    if v.get("no_difference"):
-        card.level = "warn"
-    figure = inp.data / str(v.get("figure", "")) if v.get("figure") else None
-    if figure is not None and figure.is_file() and figure.suffix == ".png":
-        card.figure = plots.png_file_uri(figure)
-    card.links = (_section_link("time_to_solution", titles)
-                  + _data_link(inp, path.name, *[str(f) for f in v.get("files") or []]))
+        card.links += _data_link(inp, path.name, f"time_to_solution{sfx}.csv")
+        speed, budgets = v.get("speedup_at_default_error"), v.get("budgets") or []
+        pick = (budgets[0].get("cheapest") or {}) if budgets else {}
+        if speed is None or not np.isfinite(speed) or not pick:
+            parts.append(str(v.get("verdict", f"{scene}: no verdict")))
+            continue
+        interval = v.get("speedup_interval")
+        ci = _resampled(speed, interval, v.get("seeds"))
+        default = v.get("default") or {}
+        parts.append(f"{scene}: {pick.get('setting', '?')} {_ratio_words(ci, interval=RESAMPLED)} than the defaults "
+                     f"({default.get('setting', '?')}) at their error {default.get('error', math.nan):.3g}")
+        frame, _ = inp.csv(f"time_to_solution{sfx}")
+        if figure is None and frame is not None and {"wall_per_sim_s", "error"} <= set(frame.columns):
+            front = frame[frame["front"].map(plots._truthy)] if "front" in frame.columns else frame.iloc[:0]
+            others = frame.drop(front.index)
+            figure = gp.front(1e3 * front["wall_per_sim_s"], front["error"], 1e3 * others["wall_per_sim_s"],
+                              others["error"], best=(1e3 * float(pick["wall_per_sim_s"]), float(pick["error"]))
+                              if pick.get("wall_per_sim_s") is not None and pick.get("error") is not None else None,
+                              xlabel="ms per simulated second", uniform_label="front", others_label="settings")
+    if not parts:
+        return None
+    card.answer = "; ".join(parts) + "."
+    card.detail = ("Cost: the solver's wall time per simulated second; error against a converged reference; "
+                   "interval: 5-95% over resampled seeds.")
+    card.figure = figure
+    card.level = "warn" if "no difference measured" in card.answer or "no verdict" in card.answer else "ok"
+    card.links = _section_link("time_to_solution", titles) + card.links
     return card
 
 

@@ -153,7 +153,8 @@ def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
     df = stress_frame(df)
     from bench.studies.stress import ENERGY_JUMP_LIMIT
     checked = "reference_error" in df.columns
-    bound = usable_bound(df) if checked else "not determined: this stress.csv has no error against a converged reference"
+    bound = (usable_bound(df) if checked
+             else "not determined: this stress.csv has no error against a converged reference")
     if not checked:
         sec.add("note", "This stress.csv predates the converged-reference check: no case is shown as usable (a stable "
                         "run can still have lost the scene, e.g. a fluid collapsed onto the floor). Rerun the stress "

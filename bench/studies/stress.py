@@ -23,17 +23,19 @@ from the heating is far slower per step).  The reference is the case's scene at 
 with REFERENCE_ITERATIONS PBF iterations over the same simulated time (one reference serves every case
 that differs only in its iterations); it is run for the cases that pass the other checks.  The smoke scale
 (the CI demo) uses a cheaper reference (dt / 2, 8 iterations) for the dt and iterations lines and the
-dt x iterations map only (they share their references); its other cases have none and are not usable (the scale table's stress_reference_* fields).  The error
-(``reference_error``, :func:`reference_error`) is the larger of the mass centre's distance from the
-reference's in particle spacings and the mean temperature's distance from the reference's relative to the
-reference's change of it (at least REFERENCE_TEMPERATURE_FLOOR), both at the end of the run.
+dt x iterations map only (they share their references); its other cases have none and are not usable
+(the scale table's stress_reference_* fields).  The error (``reference_error``, :func:`reference_error`)
+is the larger of the mass centre's distance from the reference's in particle spacings and the mean
+temperature's distance from the reference's relative to the reference's change of it (at least
+REFERENCE_TEMPERATURE_FLOOR), both at the end of the run.
 
 Outputs in OUT/data: stress.csv (parameter, value, stable, usable, reason, step, particles, max_speed,
 density_error_mean (last step), density_error_max (largest per-step mean), energy_jump (largest
 per-step kinetic-energy ratio), reference_error, reference_dt, reference_iterations, reference_reason
-(why a case has no reference error: not run, the reference blew up), then the case's dt, iterations, heating_rate, phase_rate, alpha_dt,
-steps, last_good_step, device, commit, run_dir) and stress_summary.json (the largest dt up to which
-every tried dt is stable, and the largest up to which every tried dt is usable).
+(why a case has no reference error: not run, the reference blew up), then the case's dt, iterations,
+heating_rate, phase_rate, alpha_dt, steps, last_good_step, device, commit, run_dir) and stress_summary.json
+(the largest dt up to which every tried dt is stable, the largest up to which every tried dt is usable, and
+the usable bound in words).
 """
 from __future__ import annotations
 
@@ -292,7 +294,8 @@ register(Study("stress", order=50, run=lambda ctx, scene: run_stress(ctx), secti
                       "stress_alpha_dt": dict.fromkeys(("smoke", "cpu", "gpu"), STRESS_ALPHA_DT),
                       # the converged reference: dt / divisor, these PBF iterations; at the smoke scale (the CI demo)
                       # a cheaper one and only for the dt and iterations lines and the dt x iterations map
-                      "stress_reference_divisor": {"smoke": 2, "cpu": REFERENCE_DT_DIVISOR, "gpu": REFERENCE_DT_DIVISOR},
+                      "stress_reference_divisor": {"smoke": 2, "cpu": REFERENCE_DT_DIVISOR,
+                                                   "gpu": REFERENCE_DT_DIVISOR},
                       "stress_reference_iterations": {"smoke": 8, "cpu": REFERENCE_ITERATIONS,
                                                       "gpu": REFERENCE_ITERATIONS},
                       "stress_reference_parameters": {"smoke": ("dt", "iterations", "dt x iterations"), "cpu": None,
