@@ -770,3 +770,18 @@ def test_stress_usable_needs_the_converged_reference_and_never_an_unstable_run(t
     from bench.report.build import stress_frame
     frame = stress_frame(pd.read_csv(data / "stress.csv"))
     assert frame["usable"].tolist() == [True, True, False, False]      # 8 s: unstable, whatever the CSV says
+
+
+def test_sweep_verdict_card_links_to_the_data_behind_it_and_says_no_difference(tmp_path):
+    """Without the adaptive-pareto study the adaptive card is the sweep's: its links lead to the sweep section and
+    its JSON (never to a section without data), and three single ratios of 2.00, 0.82 and 0.98 measure no
+    difference."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "sweep_verdict.json").write_text(json.dumps({
+        "metric": "error_self", "comparisons": [{"error": e, "speedup": r} for e, r in
+                                                ((0.3, 2.0), (0.2, 0.82), (0.1, 0.98))]}))
+    summary = _sections(build_report(tmp_path).read_text())["summary"]
+    card = summary[summary.index('id="card-adaptive_front"'):summary.index('id="card-compare"')]
+    assert "no difference measured" in card and "1.02x slower" not in card and 'class="card warn"' in summary
+    links = re.findall(r'<a href="([^"]+)">', card)
+    assert links == ["#sweep", "data/sweep_verdict.json"]
