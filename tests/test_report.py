@@ -785,3 +785,16 @@ def test_sweep_verdict_card_links_to_the_data_behind_it_and_says_no_difference(t
     assert "no difference measured" in card and "1.02x slower" not in card and 'class="card warn"' in summary
     links = re.findall(r'<a href="([^"]+)">', card)
     assert links == ["#sweep", "data/sweep_verdict.json"]
+
+
+def test_adaptive_card_gives_ms_per_step_as_the_median_over_seeds_with_its_spread(tmp_path):
+    from bench.report.common import Inputs
+    from bench.report.glance import _seed_ms
+    (tmp_path / "data").mkdir()
+    pd.DataFrame({"config": ["best"] * 4 + ["other"], "seed": [0, 1, 2, 3, 0], "stable": [True, True, True, False, True],
+                  "ms_per_step": [1.0, 1.2, 1.1, 9.0, 5.0]}).to_csv(tmp_path / "data" / "adaptive_pareto.csv",
+                                                                  index=False)
+    text = _seed_ms(Inputs(tmp_path), "", {"name": "best", "ms_per_step": 1.1})
+    assert text.startswith("1.1 ms per step (median over 3 seeds, 5-95%: 1.01-1.19)")     # the unstable seed left out
+    assert _seed_ms(Inputs(tmp_path), "_cumulus", {"name": "best", "ms_per_step": 1.1}) == (
+        "1.1 ms per step (mean over seeds)")
