@@ -15,6 +15,9 @@ from pbf_cuda.simulation import _core, build_params
 
 
 # ---- the solver on a small state --------------------------------------------------------------
+BACKEND = "cpu"   # one_step's backend (the GPU twins of the tests set it to "cuda")
+
+
 def params_of(scene, capacity: int = 256, **overrides):
     """The solver's Params for `scene` (a name or a Scene) with `overrides` (csrc/params.h names)."""
     if isinstance(scene, str):
@@ -26,13 +29,13 @@ def params_of(scene, capacity: int = 256, **overrides):
 
 
 def one_step(p, position, velocity, mass, temperature=None, vapor=None, cloud=None, steps: int = 1,
-             backend: str = "cpu"):
+             backend: str | None = None):
     """The state after `steps` steps of a solver with Params p started from the given arrays (no boundary
     particles), ordered by particle id (the solver sorts its particles), with the density array."""
     n = len(position)
     f32 = lambda a: np.ascontiguousarray(a, np.float32)   # noqa: E731
     zeros = np.zeros(n, np.float32)
-    s = _core().Solver(p, backend)
+    s = _core().Solver(p, backend or BACKEND)
     s.set_boundary(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32))
     s.set_fluid(f32(position), f32(velocity), f32(zeros if temperature is None else temperature),
                 f32(zeros if vapor is None else vapor), f32(zeros if cloud is None else cloud), f32(mass),

@@ -9,6 +9,7 @@ The solver's projection impulse mu must give its velocity change as M^-1 J^T mu 
 <J u, mu> = <M^-1 J^T mu, M u> for every u), and no projection may raise the kinetic energy.
 """
 import numpy as np
+import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
@@ -122,3 +123,15 @@ def test_projection_never_raises_kinetic_energy_over_steps(seed):
         e1 = kinetic_energy(out["mass"], out["velocity"])
         assert e1 <= e0 * (1 + 1e-6)
         x, v, e0 = out["position"], out["velocity"], e1
+
+
+@pytest.mark.gpu
+def test_constraint_solver_against_brute_force_on_the_gpu(monkeypatch):
+    import pbf_bruteforce
+    monkeypatch.setattr(pbf_bruteforce, "BACKEND", "cuda")
+    for seed in (0, 1, 2):
+        test_density_lambda_and_position_correction.hypothesis.inner_test(seed=seed, relaxation=0.5,
+                                                                          levels=(5, 8, 4))
+        test_velocity_projection_is_the_conjugate_gradients_of_J.hypothesis.inner_test(seed=seed, iterations=4)
+        test_adjoint_identity_and_energy_of_the_converged_projection.hypothesis.inner_test(seed=seed)
+        test_projection_never_raises_kinetic_energy_over_steps.hypothesis.inner_test(seed=seed)

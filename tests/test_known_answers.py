@@ -68,9 +68,6 @@ def test_buoyancy_and_cloud_loading_on_a_resting_box(k_b, k_g, dt, seed):
     assert np.allclose(out["velocity"][:, 1], expect, rtol=2e-4, atol=2e-6 * k_b * dt)
     assert np.abs(out["velocity"][:, [0, 2]]).max() == 0.0
     assert np.array_equal(out["cloud"], w) and np.array_equal(out["temperature"], T)
-    # the loading's sign: at T = T0 cloud water pulls down
-    dry = np.abs(T - T0) < 0.05
-    assert np.all(out["velocity"][dry, 1] < 0.0) or not dry.any()
 
 
 def test_cloud_water_is_a_drag_not_a_lift():
@@ -195,7 +192,7 @@ def smoothing_exchange(p, sc, x, mass, T, beta, cap=0.5):
 
 
 @SETTINGS
-@given(kappa=st.floats(0.05, 0.9), dt=st.sampled_from([2.0, 0.7, 3.1]), seed=st.integers(0, 2**16))
+@given(kappa=st.floats(0.1, 0.9), dt=st.sampled_from([2.0, 0.7, 3.1]), seed=st.integers(0, 2**16))
 def test_smoothing_matches_the_pairwise_exchange_on_mixed_levels(kappa, dt, seed):
     sc = scene()
     rng = np.random.default_rng(seed)
@@ -209,7 +206,7 @@ def test_smoothing_matches_the_pairwise_exchange_on_mixed_levels(kappa, dt, seed
     # kappa is stated per reference_dt: over dt it is 1 - (1 - kappa)^(dt / reference_dt), and beta with it
     kappa_dt = per_step(float(np.float32(kappa)), dt, p.reference_dt)
     dT = smoothing_exchange(p, sc, x, mass, T.astype(np.float64), beta=kappa_dt * beta0)
-    assert np.abs(dT).max() > 5e-3                                   # the exchange is not negligible
+    assert np.abs(dT).max() > 0.05 * kappa_dt                        # the exchange is not negligible
     assert np.allclose(out["temperature"] - T, dT, atol=2e-3 * np.abs(dT).max() + 1e-4)
     # antisymmetric exchange: sum m T is conserved (to float32 rounding of T ~ 300 K)
     assert abs(np.sum(mass * (out["temperature"] - T))) < 1e-4 * np.sum(mass)
@@ -221,12 +218,14 @@ def cross(a, b):
 
 
 @SETTINGS
-@given(xsph=st.floats(0.01, 0.2), eps=st.floats(0.0, 2.0), seed=st.integers(0, 2**16))
-def test_xsph_and_vorticity_confinement_match_their_sums(xsph, eps, seed):
+@given(xsph=st.floats(0.01, 0.2), eps=st.floats(0.0, 2.0), dt=st.sampled_from([2.0, 0.7, 3.1]),
+       seed=st.integers(0, 2**16))
+def test_xsph_and_vorticity_confinement_match_their_sums(xsph, eps, dt, seed):
     sc = scene()
     rng = np.random.default_rng(seed)
     p = params(sc, thermodynamics=False, velocity_projection=False, iterations=1, unilateral=True,
-                  xsph=xsph, vorticity=eps)
+               xsph=xsph, vorticity=eps, dt=dt, reference_dt=2.0)
+    xsph = per_step(xsph, dt, p.reference_dt)              # XSPH's c is stated per reference_dt
     x, mass = mixed_cluster(p, rng, n0=4, n1=6, n2=6, spread=1.6)
     v = rng.normal(0.0, 1.0, x.shape)
     out = one_step(p, x, v, mass)
@@ -246,11 +245,13 @@ def test_xsph_and_vorticity_confinement_match_their_sums(xsph, eps, seed):
     confinement = p.dt * eps * cross(N, omega)
     expect = u + xsph * visc + confinement
     scale = np.abs(expect - u).max()
-    assert scale > 1e-3
-    assert np.allclose(out["velocity"], expect, atol=2e-3 * scale + 1e-5)
+    assert scale > 1e-4
+    # u is read back from float32 positions of ~600 m: a velocity quantum of ulp(x) / dt each
+    quantum = float(np.spacing(np.float32(np.abs(xs).max()))) / p.dt
+    assert np.allclose(out["velocity"], expect, atol=2e-3 * scale + 2 * quantum)
     # the confinement force is perpendicular to the vorticity it confines
     assert np.abs(np.einsum("ik,ik->i", out["velocity"] - u - xsph * visc, omega)).max() \
-        < 1e-3 * (np.abs(confinement).max() + 1e-6) * mag.max() + 1e-6
+        < (2e-3 * scale + 2 * quantum) * mag.max() * 3
 
 
 def test_xsph_leaves_a_uniform_flow_alone():
@@ -262,3 +263,20 @@ def test_xsph_leaves_a_uniform_flow_alone():
     v = np.tile([1.5, -0.5, 2.0], (len(x), 1))
     out = one_step(p, x, v, mass)
     assert np.allclose(out["velocity"], v, atol=1e-4)
+
+
+# ---- the same known answers on the CUDA backend ---------------------------------------------------------------
+@pytest.mark.gpu
+def test_known_answers_on_the_gpu(monkeypatch):
+    import pbf_bruteforce
+    monkeypatch.setattr(pbf_bruteforce, "BACKEND", "cuda")
+    for seed in (0, 1):
+        test_buoyancy_and_cloud_loading_on_a_resting_box.hypothesis.inner_test(k_b=9.81, k_g=9.81, dt=2.0, seed=seed)
+        test_adiabatic_cooling_of_a_rising_parcel.hypothesis.inner_test(gamma_d=9.8e-3, dt=2.0, seed=seed)
+        test_phase_transition_and_latent_heat.hypothesis.inner_test(alpha=0.5, Q=2489.0, dt=2.0, seed=seed)
+        test_ground_heating_is_rate_times_heated_fraction.hypothesis.inner_test(rate=0.05, depth=100.0, dt=2.0,
+                                                                                seed=seed)
+        test_smoothing_matches_the_pairwise_exchange_on_mixed_levels.hypothesis.inner_test(kappa=0.3, dt=0.7, seed=seed)
+        test_xsph_and_vorticity_confinement_match_their_sums.hypothesis.inner_test(xsph=0.05, eps=0.5, dt=3.1,
+                                                                                   seed=seed)
+    test_cloud_water_is_a_drag_not_a_lift()
