@@ -225,6 +225,8 @@ class Simulation:
             self._solver.set_clock(int(_state["step"]), float(_state["time"]), int(_state["next_id"]))
             if _state.get("dt") is not None:   # the CFL-controlled step in use when the checkpoint was written
                 self._solver.set_time_step(float(_state["dt"]))
+            if _state.get("neighbor_row_width"):
+                self._solver.set_neighbor_row_width(int(_state["neighbor_row_width"]))
             if _state.get("budget_totals") is not None:
                 self._solver.set_budget_totals([float(x) for x in _state["budget_totals"]])
             impulse = _state["fluid"].get("projection_impulse")
@@ -317,6 +319,9 @@ class Simulation:
         for key, arr in arrays.items():
             if len(arr) != n:
                 raise ValueError(f"from_arrays: fluid['{key}'] has {len(arr)} rows, position has {n}")
+        mass = arrays["mass"]
+        if n and not (np.all(np.isfinite(mass)) and mass.min() > 0.0):
+            raise ValueError("from_arrays: fluid['mass'] must be finite and > 0 kg for every particle")
         if "id" in fluid and n:
             ids = np.asarray(fluid["id"])
             if ids.dtype.kind not in "ui" or ids.min() < 0 or ids.max() > np.iinfo(np.uint32).max - 1:
@@ -426,7 +431,8 @@ class Simulation:
             arrays["fluid_projection_impulse"] = s.get_float("projection_impulse")
         stats = s.stats()
         meta = {"version": CHECKPOINT_VERSION, "scene": self.scene.to_dict(), "step": self.step_count,
-                "time": self.time, "dt": s.time_step(), "next_id": s.next_id(), "backend": self.backend,
+                "time": self.time, "dt": s.time_step(), "neighbor_row_width": int(stats["neighbor_row_width"]),
+                "next_id": s.next_id(), "backend": self.backend,
                 "budget_totals": [stats.get(f"{k}_total", 0.0) for k in BUDGET_TOTALS]}
         return atomic_savez(path, meta, **arrays)
 
@@ -456,5 +462,6 @@ class Simulation:
                 "vapor": z["boundary_vapor"] if thermo else np.zeros(nb, np.float32),
             }
         state = {"fluid": fluid, "boundary": boundary, "step": meta["step"], "time": meta["time"],
-                 "dt": meta.get("dt"), "next_id": meta["next_id"], "budget_totals": meta.get("budget_totals")}
+                 "dt": meta.get("dt"), "neighbor_row_width": meta.get("neighbor_row_width"),
+                 "next_id": meta["next_id"], "budget_totals": meta.get("budget_totals")}
         return cls(scene, backend=backend or meta["backend"], _state=state)

@@ -357,8 +357,6 @@ def test_fuzzed_damaged_cache_files_give_the_right_result(reference, tmp_path_fa
     assert runs.verify_run(result.path, spec.key(), memo=False) == []
 
 
-@pytest.mark.xfail(strict=True, reason="the solver's neighbour-list row width (grows to the longest row seen) is "
-                   "not part of its checkpoint: Simulation.save/load and the C++ solver need it (see the report)")
 def test_real_solver_resume_matches_in_every_column(tmp_path):
     pytest.importorskip("pbf_cuda._core")
     from pbf_cuda.scene import load_scene

@@ -285,6 +285,7 @@ NB_MODULE(_core, m) {
         .def("set_clock", [](PySolver& s, long long step, double t, uint32_t next) { s.impl_->set_clock(step, t, next); })
         .def("time_step", [](PySolver& s) { return s.impl_->time_step(); })
         .def("set_time_step", [](PySolver& s, double dt) { s.impl_->set_time_step(dt); })
+        .def("set_neighbor_row_width", [](PySolver& s, unsigned w) { s.impl_->set_neighbor_row_width(w); })
         .def("step", [](PySolver& s, int n) {
             std::string failure;
             {

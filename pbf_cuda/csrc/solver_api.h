@@ -100,6 +100,9 @@ public:
     virtual void set_clock(long long step, double time, uint32_t next_id) = 0;
     virtual double time_step() const = 0;           // the step in use, s
     virtual void set_time_step(double dt) = 0;      // a checkpoint's step (CFL-controlled runs)
+    // A checkpoint's neighbour-list row width (it only grows during a run; restored, a resumed run's lists and
+    // statistics are those of the uninterrupted run)
+    virtual void set_neighbor_row_width(unsigned width) = 0;
     // Advances up to n steps; stops at the first step that fails its check and returns
     // "unstable|<step>|<last good step>|<reason>|<id,id,...>" (empty string: all n steps passed).
     // Errors travel as values, never as exceptions, across the backend boundary.

@@ -40,7 +40,7 @@ public:
         d_.atm = make_atmosphere_params(p);
         d_.ap = make_adapt_params(p, d_.radii);
         d_.smoothing = smoothing_active(p);
-        d_.rates = step_rates(p);
+        set_step_coefficients();
         allocate_grid(d_);
     }
 
@@ -181,11 +181,12 @@ public:
     // The step in use, s: the scene's dt, or the CFL-controlled one (time_step.h). Setting it re-derives every
     // per-step coefficient (the relaxations' c(dt), the atmosphere's dt and decays).
     double time_step() const override { return d_.p.dt; }
+    void set_neighbor_row_width(unsigned width) override { d_.nbr_width = std::max<uint32_t>(d_.nbr_width, width); }
     void set_time_step(double dt) override {
         if (!(dt > 0.0) || !std::isfinite(dt)) throw std::invalid_argument("time step must be positive and finite");
         if (float(dt) == d_.p.dt) return;
         d_.p.dt = float(dt);
-        d_.rates = step_rates(d_.p);
+        set_step_coefficients();
         d_.atm = make_atmosphere_params(d_.p);
     }
 
@@ -285,6 +286,13 @@ public:
 
 private:
     SolverData d_;
+
+    // The per-step coefficients of the operators stated at reference_dt (time_step.h), at the step in use.
+    void set_step_coefficients() {
+        d_.rates = step_rates(d_.p);
+        d_.cp = make_constraint_params(d_.p);
+        if (d_.p.dt != d_.p.reference_dt) d_.cp.scorr_k_lambda *= d_.rates.scorr_scale;
+    }
 };
 
 }  // namespace PBF_BACKEND_NS
