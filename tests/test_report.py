@@ -291,6 +291,7 @@ def test_table1_speedup_against_the_paper_only_where_particle_counts_match(tmp_p
     assert f"{throughput:.3g}x the paper&#39;s throughput" in card
     assert "growing adaptive 5" not in card                                   # never a speed-up for that row
     assert "mean over the timed steps; per-step spread not recorded" in card
+    assert "no interval on the speed-ups" in card
     table1 = sections["table1"]
     assert "speed-up vs paper (same counts)" in table1 and "throughput vs paper (other counts)" in table1
     assert f"{1218.95 / 3.8:.4g}" in table1 and f"{735.64 / 1.4:.4g}" not in table1
@@ -798,3 +799,15 @@ def test_adaptive_card_gives_ms_per_step_as_the_median_over_seeds_with_its_sprea
     assert text.startswith("1.1 ms per step (median over 3 seeds, 5-95%: 1.01-1.19)")     # the unstable seed left out
     assert _seed_ms(Inputs(tmp_path), "_cumulus", {"name": "best", "ms_per_step": 1.1}) == (
         "1.1 ms per step (mean over seeds)")
+
+
+def test_table1_speedup_carries_the_interval_of_the_per_step_spread(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    pd.DataFrame({"example": ["growing"], "mode": ["non-adaptive"], "variant": "", "max_particles": [830584],
+                  "total_ms": [3.8], "step_ms_median": [3.8], "step_ms_p05": [3.6], "step_ms_p95": [4.0],
+                  "timed_steps": [495], "scale": "gpu", "device": "NVIDIA H100", "commit": COMMIT}).to_csv(
+        data / "table1.csv", index=False)
+    summary = _sections(build_report(tmp_path).read_text())["summary"]
+    assert f"growing non-adaptive {1218.95 / 3.8:.3g}x [{1218.95 / 4.0:.3g}, {1218.95 / 3.6:.3g}]" in summary
+    assert "3.8 ms per step (median over 495 timed steps, 5-95%: 3.6-4)" in summary

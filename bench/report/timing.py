@@ -45,6 +45,7 @@ def paper_comparison(measured: pd.DataFrame, env: dict | None) -> pd.DataFrame:
         t = pd.to_numeric(r.get("total_ms"), errors="coerce")
         n_p = paper["max_particles"].get(key, math.nan) if "max_particles" in paper else math.nan
         t_p = paper["total_ms"].get(key, math.nan)
+        p05, p95 = (pd.to_numeric(r.get(k), errors="coerce") for k in ("step_ms_p05", "step_ms_p95"))
         rate = n * 1e3 / t if t and t > 0 else math.nan
         rate_p = n_p * 1e3 / t_p if t_p and t_p > 0 else math.nan
         matched = scale == "gpu" and np.isfinite(n) and np.isfinite(n_p) and abs(n / n_p - 1) <= MATCH_TOLERANCE
@@ -53,6 +54,8 @@ def paper_comparison(measured: pd.DataFrame, env: dict | None) -> pd.DataFrame:
                      "variant": variant, "paper_particles": n_p, "paper_ms": t_p, "particle_steps_per_s": rate,
                      "paper_particle_steps_per_s": rate_p, "counts_match": bool(matched),
                      "speedup_vs_paper": t_p / t if matched and t > 0 else math.nan,
+                     "speedup_lo": t_p / p95 if matched and p95 > 0 else math.nan,
+                     "speedup_hi": t_p / p05 if matched and p05 > 0 else math.nan,
                      "throughput_vs_paper": rate / rate_p if scale == "gpu" and not matched and rate_p > 0
                      else math.nan, "scale": scale})
     return pd.DataFrame(rows)
