@@ -136,7 +136,8 @@ def build_module(tree: Path, build: Path, jobs: int) -> tuple[bool, str, float]:
 
 
 # ---- tests ----------------------------------------------------------------------------------------------
-def run_tests(tree: Path, workdir: Path, python: str, tests: list[str], timeout: float) -> tuple[str, list[str], float]:
+def run_tests(tree: Path, workdir: Path, python: str, tests: list[str],
+              timeout: float) -> tuple[str, list[str], float]:
     """('passed' | 'failed' | 'error' | 'timeout', failing test ids, seconds)."""
     site = workdir / "site"
     site.mkdir(exist_ok=True)
@@ -147,8 +148,8 @@ def run_tests(tree: Path, workdir: Path, python: str, tests: list[str], timeout:
     junit = workdir / "junit.xml"
     if junit.exists():
         junit.unlink()
-    cmd = [python, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "mutants_hypothesis", "-n", "0", "-m", "not gpu",
-           f"--junitxml={junit}", *tests]
+    cmd = [python, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "mutants_hypothesis", "-n", "0",
+           "-m", "not gpu", f"--junitxml={junit}", *tests]
     t0 = time.time()
     try:
         out = subprocess.run(cmd, cwd=tree, env=env, text=True, capture_output=True, timeout=timeout)
@@ -248,11 +249,13 @@ def main() -> int:
             (tree / m["file"]).write_text(original)
         caught = status in ("failed", "error", "timeout")
         by_property = status == "failed" and any(c in f for f in failing for c in m["catch"])
-        outcome = {"passed": "SURVIVED", "failed": "caught", "error": "caught (error)", "timeout": "caught (timeout)"}[status]
+        outcome = {"passed": "SURVIVED", "failed": "caught", "error": "caught (error)",
+                   "timeout": "caught (timeout)"}[status]
         results.append(dict(id=m["id"], file=m["file"], outcome=outcome, by=failing if status == "failed" else [],
                             caught=caught, by_property=by_property, build_s=build_s, test_s=secs,
                             detail=failing[0] if status == "error" else ""))
-        log(f"{m['id']}: {outcome}{' by its property' if by_property else ''} ({build_s:.0f} s build, {secs:.0f} s tests)")
+        log(f"{m['id']}: {outcome}{' by its property' if by_property else ''} "
+            f"({build_s:.0f} s build, {secs:.0f} s tests)")
     if any(is_cpp(m) for m in mutants):
         ok, tail, _ = build_module(tree, build, args.jobs)   # leave the copy's module unmutated
         if not ok:
