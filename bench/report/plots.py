@@ -389,8 +389,11 @@ def stability_map(df: pd.DataFrame, stable_label: str = "stable, not usable") ->
         values = pd.to_numeric(g["value"], errors="coerce")
         stable = g["stable"].map(_truthy)
         usable = g["usable"].map(_truthy) if "usable" in g.columns else stable
+        reason = g["reference_reason"] if "reference_reason" in g.columns else pd.Series("", index=g.index)
+        unchecked = reason.fillna("").astype(str).str.startswith("not run: no reference")
         for mask, colour, marker, label in ((stable & usable, "#2ca02c", "o", "usable"),
-                                            (stable & ~usable, "#ff9f1c", "s", stable_label),
+                                            (stable & ~usable & ~unchecked, "#ff9f1c", "s", stable_label),
+                                            (stable & ~usable & unchecked, "#9aa7b4", "s", "stable, usable not checked"),
                                             (~stable, "#d62728", "X", "unstable")):
             if mask.any():
                 ax.scatter(values[mask], np.zeros(mask.sum()), s=90, color=colour, marker=marker, label=label)
