@@ -47,8 +47,8 @@ EOF
 # oversubscribe them); an idle worker steals queued tests from a busy one (--dist worksteal), so the
 # smoke demo does not hold a queue behind it. CLOUDPBF_TEST_WORKERS=0 runs the suite in this process.
 workers=${CLOUDPBF_TEST_WORKERS:-$(nproc)}
-if [ "$workers" -gt 1 ]; then how="${workers} workers"; else how="one process"; fi
-echo "test: running ${what} in ${how}; ${gpu_note}"
+if [ "$workers" -gt 1 ]; then how="with ${workers} workers"; else how="in one process"; fi
+echo "test: running ${what} ${how}; ${gpu_note}"
 # pytest's own last line (passed, failed, skipped, seconds) closes the output.
 if [ "$workers" -gt 1 ]; then
   export OMP_NUM_THREADS=1
