@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from pbf_cuda import Simulation, load_scene
 from pbf_cuda.protocol import InstabilityError
-from solver_helpers import by_id
+from solver_helpers import BACKENDS, by_id
 
 SMALL_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0,
              "atmosphere.initial_vapor_ratio": 1.03, "atmosphere.heating_rate": 0.2}
@@ -42,15 +42,16 @@ def mean_kinetic_energy(sim, duration, sample=10.0):
 
 # ---- the model converges as dt shrinks -----------------------------------------------------------------------
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("name", ["growing", "cumulus", "stratified"])
-def test_halving_the_step_changes_the_statistics_less_and_less(name):
+def test_halving_the_step_changes_the_statistics_less_and_less(name, backend):
     """The mean kinetic energy over the first 80 s (the thermals rising from the heating pattern; the gravity wave of
     `stratified`) at dt = 4, 2, 1 and 0.5 s: two halvings of the step shrink the change a halving makes at least
     two-fold (first order shrinks it four-fold). Measured on the CPU, seed 0: growing 0.044 -> 0.0058, cumulus
     0.0044 -> 0.0005, stratified 0.0026 -> 0.00012 m^2/s^2. With the coefficients stated per step instead (kappa,
     XSPH and s_corr applied once per step whatever its length) growing's change stays at 0.03-0.05 and cumulus'
     grows, so this test fails for that model."""
-    energy = {dt: mean_kinetic_energy(Simulation(scene_at(name, dt), backend="cpu", seed=0), 80.0)
+    energy = {dt: mean_kinetic_energy(Simulation(scene_at(name, dt), backend=backend, seed=0), 80.0)
               for dt in (4.0, 2.0, 1.0, 0.5)}
     coarse = abs(energy[4.0] - energy[2.0])
     fine = abs(energy[1.0] - energy[0.5])
@@ -86,9 +87,10 @@ def test_smoothing_decays_a_field_at_one_rate_per_second(kappa, seed):
 
 # ---- CFL-controlled steps ------------------------------------------------------------------------------------
 
-def test_cfl_controlled_steps_hold_the_cfl_number_and_time_adds_up():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cfl_controlled_steps_hold_the_cfl_number_and_time_adds_up(backend):
     scene = scene_at("growing", 2.0, **{"time.cfl": 0.3, "time.dt_max": 8.0, "time.dt_min": 0.05})
-    sim = Simulation(scene, backend="cpu", seed=0)
+    sim = Simulation(scene, backend=backend, seed=0)
     steps, times, cfls = [], [], []
     for _ in range(60):
         before = sim.time
@@ -107,11 +109,12 @@ def test_cfl_controlled_steps_hold_the_cfl_number_and_time_adds_up():
     assert times[-1] == pytest.approx(sum(steps), rel=1e-9)
 
 
-def test_cfl_controlled_run_resumes_bit_exactly_from_a_checkpoint(tmp_path):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cfl_controlled_run_resumes_bit_exactly_from_a_checkpoint(tmp_path, backend):
     scene = scene_at("growing", 1.0, **{"time.cfl": 0.3, "time.dt_max": 6.0})
-    whole = Simulation(scene, backend="cpu", seed=1)
+    whole = Simulation(scene, backend=backend, seed=1)
     whole.step(30)
-    part = Simulation(scene, backend="cpu", seed=1)
+    part = Simulation(scene, backend=backend, seed=1)
     part.step(12)
     part.save(tmp_path / "c.npz")
     resumed = Simulation.load(tmp_path / "c.npz")
@@ -131,16 +134,17 @@ def test_scene_refuses_a_first_step_outside_the_controlled_range():
 
 # ---- no broken state passes the check ------------------------------------------------------------------------
 
-def test_a_collapsed_dam_break_is_unstable():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_collapsed_dam_break_is_unstable(backend):
     """dt = 1 s: in one step every particle lands on the floor at rest, and the density error reads 0. The run
     stops, naming the CFL number; with the CFL bound lifted it stops on the collapse itself."""
     scene = load_scene("dam_break", **{"time.dt": 1.0}).with_particle_count(2000)
     with pytest.raises(InstabilityError, match="CFL number") as err:
-        Simulation(scene, backend="cpu", seed=0).step(5)
+        Simulation(scene, backend=backend, seed=0).step(5)
     assert err.value.step == 1
     lifted = dataclasses.replace(scene, time=dataclasses.replace(scene.time, max_cfl=1e3))
     with pytest.raises(InstabilityError, match="collapsed"):
-        Simulation(lifted, backend="cpu", seed=0).step(5)
+        Simulation(lifted, backend=backend, seed=0).step(5)
 
 
 def test_an_unforced_fluid_that_gains_energy_is_unstable():

@@ -1,0 +1,91 @@
+"""The model's convergence in the time step: one scene at several dt, with the per-step coefficients stated at
+time.reference_dt (rates per unit time, the default) and stated per step (time.reference_dt = dt, the model before
+rates), seed means of the cover, cloudy volume and mean LWP series, each run's error against the smallest step's
+rate run (relative L2 as bench/studies/adaptive_pareto.py defines it), and the wall time per simulated second.
+
+Usage: python benchmarks/dt_convergence.py [--scene growing] [--spacing 68] [--seeds 3] [--dts 0.5,1,2,4]
+                                           [--duration 1000] [--every 50] [--backend auto] [--out FILE.csv]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+import pandas as pd
+
+from bench.environment import commit, device_description
+from bench.statistics import particle_diagnostics
+from bench.studies.adaptive_pareto import SERIES, _relative_l2
+from pbf_cuda import Simulation, load_scene
+
+SERIES_USED = [(k, c) for k, c in SERIES if k in ("cover", "volume", "lwp")]
+
+
+def series(scene, backend: str, seed: int, duration: float, every: float) -> tuple[dict, float]:
+    """The run's cover, cloudy volume and mean LWP every `every` s, and its wall time in s (steps only)."""
+    sim = Simulation(scene, backend=backend, seed=seed)
+    chunk = max(1, int(round(every / scene.time.dt)))
+    out = {k: [] for k, _ in SERIES_USED} | {"time": []}
+    wall = 0.0
+    while sim.time < duration - 1e-6:
+        t0 = time.perf_counter()
+        sim.step(chunk)
+        sim.stats()                      # waits for the device
+        wall += time.perf_counter() - t0
+        row = particle_diagnostics(sim.state(), scene)
+        out["time"].append(sim.time)
+        for key, column in SERIES_USED:
+            out[key].append(row[column])
+    return {k: np.asarray(v, float) for k, v in out.items()}, wall
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="growing")
+    ap.add_argument("--spacing", type=float, default=68.0)
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--dts", default="0.5,1,2,4")
+    ap.add_argument("--duration", type=float, default=1000.0)
+    ap.add_argument("--every", type=float, default=50.0)
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    dts = sorted(float(x) for x in a.dts.split(","))
+    rows, means = [], {}
+    for mode in ("rate", "per_step"):
+        for dt in dts:
+            per_seed, walls = [], []
+            for seed in range(a.seeds):
+                overrides = {"particles.spacing": a.spacing, "time.dt": dt}
+                if mode == "per_step":
+                    overrides["time.reference_dt"] = dt
+                scene = load_scene(a.scene, **overrides)
+                s, wall = series(scene, a.backend, seed, a.duration, a.every)
+                per_seed.append(s)
+                walls.append(wall / a.duration)
+            n = min(len(s["time"]) for s in per_seed)
+            mean = {k: np.mean([s[k][:n] for s in per_seed], axis=0) for k in per_seed[0]}
+            means[(mode, dt)] = mean
+            rows.append({"scene": a.scene, "spacing_m": a.spacing, "mode": mode, "dt_s": dt, "seeds": a.seeds,
+                         "wall_s_per_simulated_s": float(np.median(walls)),
+                         "cover_end": float(mean["cover"][-1]), "lwp_end": float(mean["lwp"][-1])})
+            print(f"{mode:9s} dt {dt:5g} s: cover {mean['cover'][-1]:.3f}, LWP {mean['lwp'][-1]:.3f} kg/m^2, "
+                  f"{np.median(walls) * 1e3:.3f} ms per simulated s", flush=True)
+    reference = means[("rate", dts[0])]
+    for row in rows:
+        m = means[(row["mode"], row["dt_s"])]
+        errs = [_relative_l2(np.interp(reference["time"], m["time"], m[k]), reference[k]) for k, _ in SERIES_USED]
+        row.update({f"e_{k}": e for (k, _), e in zip(SERIES_USED, errs)})
+        row["error"] = float(np.mean(errs))
+    frame = pd.DataFrame(rows)
+    frame["device"], frame["commit"] = device_description(a.backend), commit()
+    print(frame.to_string(index=False))
+    if a.out:
+        frame.to_csv(a.out, index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
