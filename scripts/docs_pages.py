@@ -83,7 +83,11 @@ def _cell(value) -> str:
     if isinstance(value, float):
         if math.isnan(value):
             return ""
-        if value != 0 and (abs(value) >= 1e5 or abs(value) < 1e-3):
+        if value.is_integer() and abs(value) < 1e12:
+            return str(int(value))
+        if 1e4 <= abs(value) < 1e12:
+            text = f"{value:.0f}"
+        elif value != 0 and (abs(value) >= 1e12 or abs(value) < 1e-3):
             text = f"{value:.3e}"
         else:
             text = f"{value:.4g}"
