@@ -95,12 +95,15 @@ class GridSimulation:
     None (float64 on CPU, float32 on GPU).  device: None (jax's default), 'cpu', 'gpu'
     or a jax Device.  timing: 'fused' or 'phases'.  check_every: steps between
     NaN / speed checks (default: the scene's time.check_every; 0 disables).
-    cfl_target, max_substeps: advection sub-stepping.
+    cfl_target, max_substeps: advection sub-stepping (cfl_target None: the scene's time.cfl where it is > 0,
+    else 0.8). The grid's step stays time.dt: the sub-steps keep advection within its CFL number, and every
+    other term (heating, buoyancy, the phase change, the projection) is stable at the scene's steps, so the
+    scene's CFL control acts on the advection here.
     """
 
     def __init__(self, scene, seed: int | None = None, cells_per_spacing: float = 1.0, resolution=None,
                  dtype=None, device=None, timing: str = "fused", check_every: int | None = None,
-                 cfl_target: float = 0.8, max_substeps: int = 16):
+                 cfl_target: float | None = None, max_substeps: int = 16):
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
         if scene.atmosphere is None:
@@ -117,6 +120,8 @@ class GridSimulation:
         if self.dtype == jnp.float64:
             jax.config.update("jax_enable_x64", True)   # global, see the module docstring
         self.shape = grid_shape(scene, cells_per_spacing, resolution)
+        if cfl_target is None:
+            cfl_target = scene.time.cfl if scene.time.cfl > 0.0 else 0.8
         self.params = params_from_scene(scene, self.shape, cfl_target=cfl_target, max_substeps=max_substeps)
         self.timing_mode = timing
         self.check_every = scene.time.check_every if check_every is None else int(check_every)

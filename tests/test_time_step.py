@@ -228,3 +228,13 @@ def test_cli_run_of_a_collapsing_scene_exits_non_zero_and_caches_no_result(tmp_p
     import json
     results = [json.loads(p.read_text()) for p in (tmp_path / "runs").rglob("result.json")]
     assert all(r["stable"] is False for r in results)   # an unstable run is kept as such, never as a result
+
+
+def test_grid_baseline_takes_the_scene_cfl_as_its_advection_target():
+    pytest.importorskip("jax")
+    from grid_baseline import GridSimulation
+    controlled = GridSimulation(load_scene("growing", **{"time.cfl": 0.4}), resolution=(8, 8, 8), device="cpu")
+    assert controlled.params.cfl_target == pytest.approx(0.4)
+    assert GridSimulation(load_scene("growing"), resolution=(8, 8, 8), device="cpu").params.cfl_target == 0.8
+    controlled.step(3)
+    assert controlled.stats()["cfl"] <= 0.4 * controlled.stats()["substeps"] + 1e-9
