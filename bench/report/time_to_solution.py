@@ -49,9 +49,10 @@ def tts_plot(frame: pd.DataFrame, verdict: dict | None = None) -> str:
         g = df[df["group"] == group]
         if g.empty:
             continue
-        x, y = 1e3 * g["wall_per_sim_s"], g["error"]
+        x, y = 1e3 * g["wall_per_sim_s"].to_numpy(float), g["error"].to_numpy(float)
         if {"error_p05", "error_p95"} <= set(g.columns) and g["error_p05"].notna().any():
-            ax.errorbar(x, y, yerr=[np.clip(y - g["error_p05"], 0, None), np.clip(g["error_p95"] - y, 0, None)],
+            lo, hi = g["error_p05"].to_numpy(float), g["error_p95"].to_numpy(float)
+            ax.errorbar(x, y, yerr=[np.clip(y - lo, 0, None), np.clip(hi - y, 0, None)],
                         fmt="none", ecolor=colour, alpha=0.35, lw=1)
         ok = qualified.loc[g.index].to_numpy(bool)
         ax.scatter(x[ok], y[ok], marker=marker, color=colour, label=label, zorder=3)
@@ -62,16 +63,19 @@ def tts_plot(frame: pd.DataFrame, verdict: dict | None = None) -> str:
             ax.annotate(str(name), (xi, yi), fontsize=6, alpha=0.7, xytext=(3, 2), textcoords="offset points")
     front = df[df["front"].map(plots._truthy)].sort_values("wall_per_sim_s") if "front" in df else df.iloc[:0]
     if len(front):
-        ax.step(1e3 * front["wall_per_sim_s"], front["error"], where="post", color="k", lw=1, alpha=0.7,
+        ax.step(1e3 * front["wall_per_sim_s"].to_numpy(float), front["error"].to_numpy(float), where="post", color="k", lw=1, alpha=0.7,
                 label="front")
     default = df[df["default"].map(plots._truthy)] if "default" in df else df.iloc[:0]
     if len(default):
-        ax.scatter(1e3 * default["wall_per_sim_s"], default["error"], s=160, facecolors="none", edgecolors="k",
+        ax.scatter(1e3 * default["wall_per_sim_s"].to_numpy(float), default["error"].to_numpy(float), s=160, facecolors="none", edgecolors="k",
                    lw=1.5, zorder=4, label="today's defaults")
         ax.axhline(float(default["error"].iloc[0]), color="k", ls=":", lw=0.8)
     if verdict and verdict.get("noise_floor") is not None:
         ax.axhline(float(verdict["noise_floor"]), color="grey", ls="--", lw=0.8, label="seed-noise floor")
     ax.set_xscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%.3g"))
+    ax.xaxis.set_minor_formatter(FormatStrFormatter("%.3g"))
     ax.set_xlabel("wall time per simulated second (ms)")
     ax.set_ylabel("error against the reference (relative L2)")
     ax.grid(True, which="both", alpha=0.3)

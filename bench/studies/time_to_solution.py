@@ -209,7 +209,9 @@ def setting_scene(setting: Setting, scene_name: str, scale_name: str, particles:
         cap = math.ceil(t_end / dt_min)
     else:
         cap = None
-    every_dt = setting.dt
+    # rows every T / times at the fixed step; a CFL-controlled run's step is not known ahead: rows as if it
+    # were the geometric mean of its first and largest step (the series are interpolated onto the analysis times)
+    every_dt = math.sqrt(setting.dt * sizes.dt_max) if setting.cfl else setting.dt
     over["time.snapshot_every"] = max(1, int(round(t_end / sizes.times / every_dt)))
     steps = cap or max(1, math.ceil(t_end / setting.dt * (1 - 1e-9)))
     over["time.steps"] = steps
@@ -501,8 +503,8 @@ def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, repli
         raise ValueError(f"seeds = {seeds}: allowed 2..100 (seed means and intervals need at least two)")
     study, entries, sizes, base = plan(ctx, scene_name, int(seeds), sizes)
     est = estimate(entries, sizes, base)
-    ctx.say(f"time-to-solution {scene_name} ({ctx.scale.name}, {len(study)} settings x {seeds} seeds): "
-            + describe_estimate(est))
+    click.echo(f"time-to-solution {scene_name} ({ctx.scale.name}, {len(study)} settings x {seeds} seeds): "
+               + describe_estimate(est), err=True)     # also with --quiet: the size of what is about to run
     results = ctx.run_parallel([e[2] for e in entries], f"time-to-solution {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
     t_end = end_time(base, sizes)
