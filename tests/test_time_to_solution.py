@@ -137,7 +137,10 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
                        scheduler=INLINE, quiet=True)
     result = tts.run_time_to_solution(ctx, "growing", seeds=2, replicates=20, sizes=sizes)
     runs = result["runs"]
-    assert len(runs) == 6 and runs["time_s"].dropna().ge(64.0).all()
+    assert len(runs) == 6 and runs["complete"].all()
+    assert runs["time_s"].ge(64.0).all() and runs["time_s"].lt(64.0 + 16.0).all()   # the first step past the end
+    fixed = runs[runs["setting"] == "200m-dt16"]
+    assert fixed["steps"].eq(4).all() and fixed["time_s"].eq(64.0).all()
     assert (runs.loc[runs["complete"], "wall_per_sim_s"] > 0).all()
     data = ctx.data
     for name in ("time_to_solution.csv", "time_to_solution_runs.csv", "time_to_solution_series.csv",
@@ -154,3 +157,14 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
     sec = Section("time_to_solution", "Time to solution")
     section(Inputs(ctx.out), sec, None)
     assert any(b.kind == "image" for b in sec.blocks) and not sec.missing
+
+
+def test_end_time_enters_the_run_key_only_when_set():
+    from bench import runs
+    from pbf_cuda.scene import load_scene
+    spec = runs.RunSpec("particles", load_scene("growing"), backend="cpu", steps=10)
+    assert "end_time" not in spec.options()                 # the keys of runs without it are unchanged
+    timed = spec.replace(end_time=20.0)
+    assert timed.options()["end_time"] == 20.0 and timed.key() != spec.key()
+    with pytest.raises(ValueError, match="end_time"):
+        spec.replace(end_time=-1.0)
