@@ -227,7 +227,8 @@ def test_xsph_and_vorticity_confinement_match_their_sums(xsph, eps, dt, seed):
     p = params(sc, thermodynamics=False, velocity_projection=False, iterations=1, unilateral=True,
                xsph=xsph, vorticity=eps, dt=dt, reference_dt=2.0)
     xsph = per_step(xsph, dt, p.reference_dt)              # XSPH's c is stated per reference_dt
-    x, mass = mixed_cluster(p, rng, n0=4, n1=6, n2=6, spread=1.6)
+    x, mass = mixed_cluster(p, rng, n0=4, n1=6, n2=6, spread=0.8)
+    p.rest_density = 1e3 * p.rest_density                  # far below it (unilateral): no position correction
     v = rng.normal(0.0, 1.0, x.shape)
     out = one_step(p, x, v, mass)
     xs = out["position"]                                    # x* (no wrap: the cluster sits mid-box)
@@ -249,18 +250,25 @@ def test_xsph_and_vorticity_confinement_match_their_sums(xsph, eps, dt, seed):
     assert scale > 1e-4
     # u is read back from float32 positions of ~600 m: a velocity quantum of ulp(x) / dt each
     quantum = float(np.spacing(np.float32(np.abs(xs).max()))) / p.dt
-    assert np.allclose(out["velocity"], expect, atol=2e-3 * scale + 2 * quantum)
+    tol = 2e-3 * scale + 2 * quantum
+    # N = eta / |eta| is ill-conditioned where eta's terms nearly cancel: there only the force's size is known
+    terms = np.einsum("ij,ij->i", np.abs(V[None, :] * (mag[None, :] - mag[:, None])), np.linalg.norm(G, axis=2))
+    well = length[:, 0] > 1e-3 * terms
+    assert well.sum() >= len(well) // 2 and (W > 0).sum(axis=1).mean() > 2   # neighbours, mostly well-conditioned
+    assert np.allclose(out["velocity"][well], expect[well], atol=tol)
+    forced = np.linalg.norm(out["velocity"] - u - xsph * visc, axis=1)
+    assert np.all(forced <= p.dt * eps * mag + 2 * tol)
     # the confinement force is perpendicular to the vorticity it confines
-    assert np.abs(np.einsum("ik,ik->i", out["velocity"] - u - xsph * visc, omega)).max() \
-        < (2e-3 * scale + 2 * quantum) * mag.max() * 3
+    assert np.abs(np.einsum("ik,ik->i", out["velocity"] - u - xsph * visc, omega)).max() < 3 * tol * mag.max()
 
 
 def test_xsph_leaves_a_uniform_flow_alone():
     sc = scene()
     rng = np.random.default_rng(3)
     p = params(sc, thermodynamics=False, velocity_projection=False, iterations=1, unilateral=True,
-                  xsph=0.2, vorticity=1.0)
-    x, mass = mixed_cluster(p, rng, n0=4, n1=6, n2=6, spread=1.6)
+               xsph=0.2, vorticity=1.0)
+    x, mass = mixed_cluster(p, rng, n0=4, n1=6, n2=6, spread=0.8)
+    p.rest_density = 1e3 * p.rest_density                  # no position correction
     v = np.tile([1.5, -0.5, 2.0], (len(x), 1))
     out = one_step(p, x, v, mass)
     assert np.allclose(out["velocity"], v, atol=1e-4)
