@@ -50,7 +50,7 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import click
 import numpy as np
@@ -218,13 +218,20 @@ def setting_scene(setting: Setting, scene_name: str, scale_name: str, particles:
     return scene.replace(**over), steps
 
 
-def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None) -> tuple[list, list, Sizes, Scene]:
-    """(settings, [(setting, seed, RunSpec)], sizes, base scene) of the study at ctx's scale."""
+GROUPS = ("grid", "iterations", "divergence", "cfl", "adaptive")
+
+
+def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None,
+         groups: tuple | None = None) -> tuple[list, list, Sizes, Scene]:
+    """(settings, [(setting, seed, RunSpec)], sizes, base scene) of the study at ctx's scale; with `groups`
+    only the settings of those groups, and always the defaults and the reference (a part of the study that
+    a later run of all groups finds in the run cache)."""
     sizes = sizes or getattr(ctx.scale, "time_to_solution", None) or SIZES[ctx.scale.name]
     base = scaled_scene(scene_name, ctx.scale.name, ctx.scale.particles, sizes)
     if sizes.default_dt:
         base = base.replace(**{"time.dt": sizes.default_dt})
-    study = settings(base, sizes)
+    study = [s for s in settings(base, sizes)
+             if groups is None or s.group in groups or s.default or s.group == "reference"]
     t_end = end_time(base, sizes)
     entries = []
     for setting in study:
@@ -495,13 +502,13 @@ def write_outputs(data: Path, scene_name: str, per_setting, per_run, series, ver
 
 
 def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, replicates: int = BOOTSTRAP_REPLICATES,
-                         sizes: Sizes | None = None) -> dict:
+                         sizes: Sizes | None = None, groups: tuple | None = None) -> dict:
     """Run (or read) the study for one scene; write its CSVs and verdict into ctx.data."""
     if scene_name not in SCENES:
         raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
     if not 2 <= int(seeds) <= 100:
         raise ValueError(f"seeds = {seeds}: allowed 2..100 (seed means and intervals need at least two)")
-    study, entries, sizes, base = plan(ctx, scene_name, int(seeds), sizes)
+    study, entries, sizes, base = plan(ctx, scene_name, int(seeds), sizes, groups)
     est = estimate(entries, sizes, base)
     click.echo(f"time-to-solution {scene_name} ({ctx.scale.name}, {len(study)} settings x {seeds} seeds): "
                + describe_estimate(est), err=True)     # also with --quiet: the size of what is about to run
@@ -554,6 +561,9 @@ def time_to_solution_command(
                                                                "the GPU scale)")] = 8,
     resamples: Annotated[int, typer.Option(min=0, max=100000, help="resamples of the seeds for the intervals")
                          ] = BOOTSTRAP_REPLICATES,
+    groups: Annotated[Optional[str], typer.Option(
+        help=f"only these groups of settings, comma-separated ({', '.join(GROUPS)}), with the defaults and the "
+             "reference: a study in parts that fit a time limit (a later run of all finds them cached)")] = None,
     estimate_only: Annotated[bool, typer.Option("--estimate", help="print the plan's runs, steps and a rough GPU "
                                                                    "time, run nothing")] = False,
     from_data: Annotated[bool, typer.Option("--from-data", help="run nothing: rebuild the verdict from the "
@@ -565,6 +575,12 @@ def time_to_solution_command(
     """Time to solution at equal error: dt (fixed, CFL), iterations, spacing, adaptivity; the cheapest settings."""
     if scene not in SCENES:
         raise click.UsageError(f"--scene {scene!r}: allowed {', '.join(SCENES)}")
+    chosen = None
+    if groups is not None:
+        chosen = tuple(g.strip() for g in groups.split(",") if g.strip())
+        unknown = [g for g in chosen if g not in GROUPS]
+        if unknown or not chosen:
+            raise click.UsageError(f"--groups {groups!r}: allowed {', '.join(GROUPS)} (comma-separated)")
     if from_data:
         try:
             result = rebuild(Path(out) / "data", scene, resamples)
@@ -575,12 +591,12 @@ def time_to_solution_command(
     with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             if estimate_only:
-                study, entries, sizes, base = plan(ctx, scene, seeds)
+                study, entries, sizes, base = plan(ctx, scene, seeds, groups=chosen)
                 est = estimate(entries, sizes, base)
                 typer.echo(f"{len(study)} settings x {seeds} seeds: " + describe_estimate(est))
                 typer.echo(", ".join(s.name for s in study))
                 return
-            result = run_time_to_solution(ctx, scene, seeds, resamples)
+            result = run_time_to_solution(ctx, scene, seeds, resamples, groups=chosen)
     cols = ["setting", "group", "stable_seeds", "wall_per_sim_s", "error", "error_p05", "error_p95", "front"]
     frame = result["settings"]
     typer.echo(frame[[c for c in cols if c in frame]].to_string(index=False))
