@@ -223,8 +223,8 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     parser.feed(page)
     expected = [sid for sid, _ in SECTIONS]
     assert set(expected) <= parser.ids
-    assert expected == ["summary", "time_to_solution", "table1", "phases", "scaling", "benchmark_history", "peers", "adaptive",
-                        "compare", "shallow_cumulus", "sweep",
+    assert expected == ["summary", "time_to_solution", "table1", "phases", "scaling", "benchmark_history", "peers",
+                        "adaptive", "compare", "shallow_cumulus", "sweep",
                         "adaptive_pareto", "stress", "renders", "figure1", "figure3", "environment"]
     # offline: in-page anchors, embedded images and files beside the page (data, full-size figures); no URL,
     # no path of this machine
@@ -238,7 +238,7 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     assert parser.images == 25   # every figure and render, the 2-D map, the animation and four verdict cards
     sections = _sections(page)
     for sid in expected:
-        if sid == "time_to_solution":      # its study's data are not in this synthetic study (tests/test_time_to_solution.py)
+        if sid == "time_to_solution":      # not in this synthetic study (tests/test_time_to_solution.py)
             continue
         assert "not run in this study" not in sections[sid], sid
         assert "could not build" not in sections[sid], sid
@@ -253,8 +253,8 @@ def test_report_builds_with_every_section_and_no_external_reference(full_report)
     assert "40 ids: 100 101 102 …" in sections["stress"] and "120 121" not in sections["stress"]
     assert "velocity bound exceeded" in sections["stress"]
     # the sweep verdict: three single ratios whose interval holds 1
-    assert "no difference measured: at equal error the adaptive runs&#39; speed-ups are 2.00x, 0.82x, 0.98x" in sections[
-        "sweep"]
+    assert ("no difference measured: at equal error the adaptive runs&#39; speed-ups are 2.00x, 0.82x, 0.98x"
+            in sections["sweep"])
     # adaptive-pareto: the stable-seed rule of the verdict is stated, and what it left out is drawn apart
     assert "use only configurations stable in at least 3 seeds" in sections["adaptive_pareto"]
     assert "open markers: left out of the verdict" in sections["adaptive_pareto"]
@@ -794,7 +794,8 @@ def test_adaptive_card_gives_ms_per_step_as_the_median_over_seeds_with_its_sprea
     from bench.report.common import Inputs
     from bench.report.glance import _seed_ms
     (tmp_path / "data").mkdir()
-    pd.DataFrame({"config": ["best"] * 4 + ["other"], "seed": [0, 1, 2, 3, 0], "stable": [True, True, True, False, True],
+    pd.DataFrame({"config": ["best"] * 4 + ["other"], "seed": [0, 1, 2, 3, 0],
+                  "stable": [True, True, True, False, True],
                   "ms_per_step": [1.0, 1.2, 1.1, 9.0, 5.0]}).to_csv(tmp_path / "data" / "adaptive_pareto.csv",
                                                                   index=False)
     text = _seed_ms(Inputs(tmp_path), "", {"name": "best", "ms_per_step": 1.1})
