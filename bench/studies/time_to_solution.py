@@ -99,7 +99,7 @@ class Sizes:
     def __str__(self) -> str:
         """The sizes in a line (the scale table and the docs' studies page show it)."""
         g = lambda v: ", ".join(f"{x:.3g}" for x in v) or "none"  # noqa: E731
-        where = f"box {self.box['domain.size']} m, spacing {self.spacing:g} m" if self.box else "the scene's spacing"
+        where = f"box {self.box['domain.size']} m, spacing {self.spacing:g} m" if self.box else "the scale's spacing of the scene"
         return (f"{where} x ({g(self.spacing_ratios)}); dt {g(sorted(set(self.dts) | {self.default_dt or 2.0}))} s; "
                 f"CFL {g(self.grid_cfls)} at every spacing, {g(self.cfls)} at the default (dt_max {self.dt_max:g} s); "
                 f"iterations {g(self.iterations)}; projection iterations {g(self.divergence_iterations)}; adaptive "
