@@ -46,7 +46,7 @@ __all__ = ["build_report", "report_sections", "SECTIONS", "COMMANDS", "PAPER_TAB
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 SHORT_TITLES = {"summary": "Verdicts", "table1": "Table 1", "phases": "Phases", "benchmark_history": "History",
                 "peers": "SPlisHSPlasH", "adaptive": "Adaptive", "compare": "Particles vs grid",
-                "shallow_cumulus": "Shallow cumulus", "sweep": "Time vs error", "adaptive_pareto": "Adaptive front",
+                "shallow_cumulus": "Cumulus", "sweep": "Time vs error", "adaptive_pareto": "Adaptive front",
                 "stress": "Stability", "renders": "Renders", "figure1": "Fig. 1", "figure3": "Fig. 3",
                 "environment": "Environment", "scaling": "Scaling", "time_to_solution": "Time to solution"}
 """The navigation's label of each section (its title where not listed), short enough for one row at 1366 px."""
