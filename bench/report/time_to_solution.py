@@ -63,12 +63,12 @@ def tts_plot(frame: pd.DataFrame, verdict: dict | None = None) -> str:
             ax.annotate(str(name), (xi, yi), fontsize=6, alpha=0.7, xytext=(3, 2), textcoords="offset points")
     front = df[df["front"].map(plots._truthy)].sort_values("wall_per_sim_s") if "front" in df else df.iloc[:0]
     if len(front):
-        ax.step(1e3 * front["wall_per_sim_s"].to_numpy(float), front["error"].to_numpy(float), where="post", color="k", lw=1, alpha=0.7,
-                label="front")
+        ax.step(1e3 * front["wall_per_sim_s"].to_numpy(float), front["error"].to_numpy(float), where="post",
+                color="k", lw=1, alpha=0.7, label="front")
     default = df[df["default"].map(plots._truthy)] if "default" in df else df.iloc[:0]
     if len(default):
-        ax.scatter(1e3 * default["wall_per_sim_s"].to_numpy(float), default["error"].to_numpy(float), s=160, facecolors="none", edgecolors="k",
-                   lw=1.5, zorder=4, label="today's defaults")
+        ax.scatter(1e3 * default["wall_per_sim_s"].to_numpy(float), default["error"].to_numpy(float), s=160,
+                   facecolors="none", edgecolors="k", lw=1.5, zorder=4, label="today's defaults")
         ax.axhline(float(default["error"].iloc[0]), color="k", ls=":", lw=0.8)
     if verdict and verdict.get("noise_floor") is not None:
         ax.axhline(float(verdict["noise_floor"]), color="grey", ls="--", lw=0.8, label="seed-noise floor")

@@ -8,16 +8,11 @@ so that CFL-controlled runs cover the same period as fixed-step ones):
   scene's own spacing times 2, 2^(2/3), 2^(1/3), 1, halving the particle count each step) x fixed steps (1, 2
   and 4 s), and the CFL-controlled step (``time.cfl`` 0.5, dt_max 8 s) at every spacing;
 * one factor at a time around today's defaults (the scene's spacing and dt, 2 s): ``pbf.iterations`` 2,
-  ``pbf.divergence_iterations`` 2, ``time.cfl`` 0.8, and the scene's adaptive twin (``<scene>_adaptive``, its
-  finest level at the default spacing).  More iterations, smaller CFL numbers and dt 8 s are left out at the
-  GPU scale to bound its cost (``Sizes``: each is one field); the issue measured that 8 iterations change little;
+  ``pbf.divergence_iterations`` 2, ``time.cfl`` 0.8, and the adaptive twin (``<scene>_adaptive``, its finest
+  level at the default spacing); more iterations, smaller CFL numbers and dt 8 s are left out to bound the cost;
 * the reference, never one of the compared settings: the finest spacing at the smallest step (0.5 s) with
   8 density iterations and the scene's 4 projection iterations (at a quarter of the default step, four
   times their iterations per simulated second).
-
-Every setting is run for every seed; ``cloudpbf time-to-solution --estimate`` prints the runs, steps and a rough
-H100 time of the plan (at the GPU scale the diagnostics rows, deposits of every particle on the host, cost about
-twice the steps: four analysis times keep them few).
 
 Error of a setting (as in the adaptive study): its seed-mean series of cloud cover, cloudy volume and mean LWP,
 each interpolated onto N times evenly spaced in (0, T], against the reference's seed mean, relative L2 over
@@ -35,12 +30,11 @@ the cheapest setting's at an error no larger than the defaults'.  Intervals: the
 5-95% of every setting's error and cost, of the speed-up, the share of resamples where it reaches
 :data:`GOAL_SPEEDUP` (the issue's target), and how often each setting is the cheapest one.
 
-Outputs (OUT/data, with the suffix ``_<scene>`` for a scene other than growing): ``time_to_solution.csv``
-(one row per setting), ``time_to_solution_runs.csv`` (one row per run), ``time_to_solution_series.csv`` (every
-run's series on the analysis times: what ``--from-data`` needs) and ``time_to_solution_verdict.json``; each
-names its device and commit.
+Outputs (OUT/data; suffix ``_<scene>`` for a scene but growing): ``time_to_solution.csv`` (per setting),
+``_runs.csv`` (per run), ``_series.csv`` (the runs' series: what ``--from-data`` needs) and ``_verdict.json``, with
+device and commit.  ``--estimate`` prints the plan's runs, steps and a rough H100 time; ``--groups`` runs a part.
 
-    cloudpbf time-to-solution [--scene growing|cumulus|cycling] [--seeds 8] [--scale gpu] [--estimate]
+    cloudpbf time-to-solution [--scene growing|cumulus|cycling] [--seeds 8] [--scale gpu] [--estimate] [--groups]
     cloudpbf time-to-solution --from-data --out DIR
 """
 from __future__ import annotations
@@ -99,7 +93,8 @@ class Sizes:
     def __str__(self) -> str:
         """The sizes in a line (the scale table and the docs' studies page show it)."""
         g = lambda v: ", ".join(f"{x:.3g}" for x in v) or "none"  # noqa: E731
-        where = f"box {self.box['domain.size']} m, spacing {self.spacing:g} m" if self.box else "the scale's spacing of the scene"
+        where = (f"box {self.box['domain.size']} m, spacing {self.spacing:g} m" if self.box
+                 else "the scale's spacing of the scene")
         return (f"{where} x ({g(self.spacing_ratios)}); dt {g(sorted(set(self.dts) | {self.default_dt or 2.0}))} s; "
                 f"CFL {g(self.grid_cfls)} at every spacing, {g(self.cfls)} at the default (dt_max {self.dt_max:g} s); "
                 f"iterations {g(self.iterations)}; projection iterations {g(self.divergence_iterations)}; adaptive "
@@ -108,8 +103,8 @@ class Sizes:
                 f"{self.times} analysis times to {f'{self.end_time:g} s' if self.end_time else 'the scene end'}")
 
 
-SIZES = {"gpu": Sizes(), "cpu": Sizes(),  # smoke: a small box, minutes of CPU (no adaptive twin: too coarse)
-         # the first cloud near 480 s in this box; CFL 0.3 with steps up to 16 s (at 0.5 the step stays at 8 s)
+SIZES = {"gpu": Sizes(), "cpu": Sizes(),  # smoke: a box whose first cloud comes near 480 s; no adaptive twin (too
+         # coarse); CFL 0.3 with steps up to 16 s (at 0.5 the step stays at 8 s)
          "smoke": Sizes(spacing_ratios=(1.26, 1.0), dts=(8.0,), grid_cfls=(), cfls=(0.3,), iterations=(2,),
                         dt_max=16.0, divergence_iterations=(), adaptive=False, reference_dt=4.0, default_dt=8.0,
                         end_time=640.0, times=4, box=SMOKE_BOX, spacing=120.0, analysis_grid=(16, 16, 16))}
@@ -183,7 +178,7 @@ def scaled_scene(scene_name: str, scale_name: str, particles: int | None, sizes:
                                    "atmosphere.heating_rate": scaled.atmosphere.heating_rate})
 
 
-def end_time(base: Scene, sizes: Sizes) -> float:
+def end_time(base: Scene, sizes: Sizes) -> float:      # the sizes' own, else the scene's time.steps x its dt
     return float(sizes.end_time or base.time.steps * base.time.dt)
 
 
@@ -218,7 +213,7 @@ def setting_scene(setting: Setting, scene_name: str, scale_name: str, particles:
     return scene.replace(**over), steps
 
 
-GROUPS = ("grid", "iterations", "divergence", "cfl", "adaptive")
+GROUPS = ("grid", "iterations", "divergence", "cfl", "adaptive")   # of settings (with the reference)
 
 
 def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None,
@@ -257,18 +252,15 @@ def estimate(entries, sizes: Sizes, base: Scene) -> dict:
     for setting, _, spec in entries:
         scene = spec.scene
         n = scene.estimated_particles() * (2 ** scene.adaptive.max_level / 2 if scene.adaptive.enabled else 1)
-        dt = setting.dt if not setting.cfl else min(sizes.dt_max, max(sizes.reference_dt / 4, setting.dt * setting.cfl
-                                                                       / 0.67 * setting.spacing_m / base.particles.spacing))
-        k = t_end / dt
-        factor = 1 + 0.1 * (scene.pbf.iterations - 4) + 0.05 * (scene.pbf.divergence_iterations - 4)
-        steps += k
-        particle_steps += k * n
+        guess = setting.dt * setting.cfl / 0.67 * setting.spacing_m / base.particles.spacing
+        dt = setting.dt if not setting.cfl else min(sizes.dt_max, max(sizes.reference_dt / 4, guess))
+        k, factor = t_end / dt, 1 + 0.1 * (scene.pbf.iterations - 4) + 0.05 * (scene.pbf.divergence_iterations - 4)
+        steps, particle_steps = steps + k, particle_steps + k * n
         rows = min(k, spec.total_steps) / spec.diagnostic_every + 2
         step_s += k * (MS_FIXED + MS_PER_PARTICLE * n) * factor / 1e3
         other_s += S_PER_RUN + (1 + rows) * n * S_PER_PARTICLE
-    return {"runs": len(entries), "steps": int(steps), "particle_steps": float(particle_steps),
-            "step_s_estimate": float(step_s), "other_s_estimate": float(other_s),
-            "gpu_s_estimate": float(step_s + other_s), "simulated_s": t_end}
+    return {"runs": len(entries), "steps": int(steps), "particle_steps": float(particle_steps), "simulated_s": t_end,
+            "step_s_estimate": step_s, "other_s_estimate": other_s, "gpu_s_estimate": step_s + other_s}
 
 
 def describe_estimate(est: dict) -> str:
@@ -279,10 +271,6 @@ def describe_estimate(est: dict) -> str:
 
 
 # ---- analysis --------------------------------------------------------------------------------------
-def analysis_times(t_end: float, n: int) -> np.ndarray:
-    return np.linspace(0.0, t_end, int(n) + 1)[1:]
-
-
 def run_row(setting: Setting, seed: int, spec, result, t_end: float, device: str, commit: str) -> dict:
     """One run's row: completeness, wall time per simulated second, step statistics."""
     info = result.info
@@ -290,15 +278,14 @@ def run_row(setting: Setting, seed: int, spec, result, t_end: float, device: str
     complete = bool(result.stable) and time_s is not None and float(time_s) >= t_end * (1 - 1e-6)
     stats = result.stats() if result.stable else pd.DataFrame()
     first_dt = float(spec.scene.time.dt)          # the first step, fixed or CFL-controlled, is time.dt
-    timed = info.get("timed_steps") or 0
-    wall = (info.get("step_ms") or math.nan) * timed / 1e3
+    wall = (info.get("step_ms") or math.nan) * (info.get("timed_steps") or 0) / 1e3     # steps after the first
     wall_per_sim_s = wall / (float(time_s) - first_dt) if complete and float(time_s) > first_dt else math.nan
     reason = info.get("reason") or (None if complete else f"stopped at t = {time_s} s before {t_end:g} s")
     return {"setting": setting.name, "seed": int(seed), "stable": bool(result.stable), "complete": complete,
             "reason": reason, "steps": info.get("step"), "time_s": time_s, "wall_per_sim_s": wall_per_sim_s,
             "ms_per_step": info.get("step_ms"), "particles": info.get("max_particles"),
             "max_cfl": float(stats["cfl"].max()) if "cfl" in stats and len(stats) else math.nan,
-            "device": device or info.get("device"), "commit": commit, "run_dir": str(result.path)}
+            "device": info.get("device") or device, "commit": commit, "run_dir": str(result.path)}
 
 
 def run_series(result, times: np.ndarray) -> dict | None:
@@ -326,7 +313,8 @@ def arrays(per_run: pd.DataFrame, series: pd.DataFrame, names: list[str], seeds:
         if (name, int(seed)) in ok and name in index:
             g = g.sort_values("time_s")
             for k, (key, _) in enumerate(SERIES):
-                S[index[name], seat[int(seed)], k] = np.interp(times, g["time_s"].to_numpy(float), g[key].to_numpy(float))
+                S[index[name], seat[int(seed)], k] = np.interp(times, g["time_s"].to_numpy(float),
+                                                               g[key].to_numpy(float))
     return S, W
 
 
@@ -411,16 +399,16 @@ def analyse(per_run: pd.DataFrame, series: pd.DataFrame, meta: pd.DataFrame, ver
         per_seed = np.stack([relative_errors(S[:, j], reference).mean(axis=1) for j in range(len(seeds))], axis=1)
         frame["error_seed_spread"] = np.nanstd(per_seed, axis=1, ddof=1) if len(seeds) > 1 else np.nan
     frame["qualified"] = qualified
-    frame["front"] = pareto_mask(np.where(qualified, point["cost"], np.nan), np.where(qualified, point["error"], np.nan))
+    frame["front"] = pareto_mask(np.where(qualified, point["cost"], np.nan),
+                                 np.where(qualified, point["error"], np.nan))
     boot = {"speedup": [], "errors": [], "costs": [], "picks": []}
     rng = np.random.default_rng(rng_seed)
     for _ in range(int(replicates) if len(seeds) > 1 else 0):
         draw = rng.integers(0, len(seeds), len(seeds))
         r = evaluate(S, W, qualified, ref, default, draw)
-        boot["speedup"].append(r["speedup"])
-        boot["errors"].append(r["error"])
-        boot["costs"].append(r["cost"])
-        boot["picks"].append(r["picks"]["default"])
+        for key, value in (("speedup", r["speedup"]), ("errors", r["error"]), ("costs", r["cost"]),
+                           ("picks", r["picks"]["default"])):
+            boot[key].append(value)
     if boot["errors"]:
         with _quiet():
             for col, key in (("error", "errors"), ("wall_per_sim_s", "costs")):
@@ -477,19 +465,18 @@ def build_verdict(frame: pd.DataFrame, point: dict, default: int, boot: dict, ex
             "seeds": n_seeds, "replicates": len(boot["speedup"]), "verdict": text}
 
 
-def _truthy(value) -> bool:
+def _truthy(value) -> bool:         # a CSV's True / "True" / 1; NaN is not
     if isinstance(value, str):
         return value.strip().lower() in ("true", "1", "yes")
     return bool(value) and not (isinstance(value, float) and math.isnan(value))
 
 
 def meta_frame(study: list[Setting]) -> pd.DataFrame:
-    return pd.DataFrame([{"setting": s.name, "group": s.group, "default": s.default, "spacing_m": s.spacing_m,
-                          "dt": s.dt, "cfl": s.cfl, "iterations": s.iterations, "divergence_iterations":
-                          s.divergence_iterations, "adaptive": s.adaptive} for s in study])
+    import dataclasses
+    return pd.DataFrame([dataclasses.asdict(s) for s in study]).rename(columns={"name": "setting"})
 
 
-def suffix(scene_name: str) -> str:
+def suffix(scene_name: str) -> str:         # the growing scene's files have none
     return "" if scene_name == "growing" else f"_{scene_name}"
 
 
@@ -515,13 +502,14 @@ def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, repli
     results = ctx.run_parallel([e[2] for e in entries], f"time-to-solution {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
     t_end = end_time(base, sizes)
-    times = analysis_times(t_end, sizes.times)
+    times = np.linspace(0.0, t_end, int(sizes.times) + 1)[1:]      # the analysis times, in (0, T]
     rows, series = [], []
     for (setting, seed, spec), result in zip(entries, results):
         rows.append(run_row(setting, seed, spec, result, t_end, device, ctx.commit))
         sig = run_series(result, times) if rows[-1]["complete"] else None
         if sig is not None:
-            series += [{"setting": setting.name, "seed": seed, "time_s": float(t), **{k: float(sig[k][j]) for k, _ in SERIES}}
+            series += [{"setting": setting.name, "seed": seed, "time_s": float(t),
+                        **{k: float(sig[k][j]) for k, _ in SERIES}}
                        for j, t in enumerate(times)]
     per_run = pd.DataFrame(rows)
     series = pd.DataFrame(series, columns=["setting", "seed", "time_s"] + [k for k, _ in SERIES])
