@@ -94,6 +94,13 @@ def test_a_setting_unstable_in_one_seed_is_left_out_of_the_verdict():
     assert verdict["speedup_at_default_error"] == pytest.approx(4.0 / 3.0)
 
 
+def test_defaults_unstable_in_a_seed_give_no_verdict():
+    per_run, series, meta = synthetic(SPECS, unstable={("default", 5)})
+    frame, verdict = tts.analyse(per_run, series, meta, {"scene": "growing"}, replicates=20)
+    assert verdict["speedup_at_default_error"] is None and verdict["speedup_interval"] is None
+    assert "stable in 7 of 8 seeds" in verdict["verdict"]
+
+
 def test_no_measurable_error_gives_no_verdict_rather_than_a_number():
     specs = {"ref": ("reference", False, 0.0, 5.0), "default": ("grid", True, 0.1, 1.0)}
     per_run, series, meta = synthetic(specs, seeds=2)

@@ -432,8 +432,8 @@ def build_verdict(frame: pd.DataFrame, point: dict, default: int, boot: dict, ex
         i = point["picks"][name]
         budgets.append({"budget": name, "factor": f, "error_budget": clean(float(f * e0)), "cheapest": brief(i),
                         "speedup_vs_default": clean(float(c0 / point["cost"][i])) if i is not None else None})
-    s = clean(float(point["speedup"]))
-    speeds = np.array([v for v in boot["speedup"] if np.isfinite(v)])
+    s = clean(float(point["speedup"])) if rows[default]["qualified"] else None   # defaults stable in every seed
+    speeds = np.array([v for v in boot["speedup"] if np.isfinite(v)]) if s is not None else np.zeros(0)
     interval = [float(np.percentile(speeds, 5)), float(np.percentile(speeds, 95))] if len(speeds) else None
     p_goal = float(np.mean(speeds >= GOAL_SPEEDUP)) if len(speeds) else None
     front = frame[frame["front"]].sort_values("wall_per_sim_s")
@@ -441,8 +441,9 @@ def build_verdict(frame: pd.DataFrame, point: dict, default: int, boot: dict, ex
                 for r in rows if not r["qualified"] and r["group"] != "reference"]
     scene = extra.get("scene", "?")
     if s is None or budgets[0]["cheapest"] is None:
-        text = (f"{scene}: no verdict: the defaults ({rows[default]['setting']}) have no measurable error or cost "
-                f"(stable in {rows[default]['stable_seeds']} of {n_seeds} seeds, error {clean(float(e0))}).")
+        text = (f"{scene}: no verdict: the defaults ({rows[default]['setting']}) are stable in "
+                f"{rows[default]['stable_seeds']} of {n_seeds} seeds with error {clean(float(e0))} (a verdict needs "
+                "every seed and a measurable error).")
     else:
         pick = budgets[0]["cheapest"]
         text = (f"{scene}: at the defaults' own error {e0:.3f} ({rows[default]['setting']}, "
@@ -466,9 +467,8 @@ def build_verdict(frame: pd.DataFrame, point: dict, default: int, boot: dict, ex
 
 
 def _truthy(value) -> bool:         # a CSV's True / "True" / 1; NaN is not
-    if isinstance(value, str):
-        return value.strip().lower() in ("true", "1", "yes")
-    return bool(value) and not (isinstance(value, float) and math.isnan(value))
+    return (value.strip().lower() in ("true", "1", "yes") if isinstance(value, str)
+            else bool(value) and not (isinstance(value, float) and math.isnan(value)))
 
 
 def meta_frame(study: list[Setting]) -> pd.DataFrame:
