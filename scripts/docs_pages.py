@@ -49,11 +49,6 @@ VERDICTS = {
     "adaptive-pareto": "Adaptive against uniform particles at equal error over many seeds: the speed-up of the best "
                        "adaptive variant at the uniform runs' error, with a bootstrap interval over seeds. Above 1 "
                        "adaptivity pays; below 1 a uniform run of the same error is faster.",
-    "time-to-solution": "The cheapest settings of the particle solver (spacing, fixed or CFL-controlled dt, "
-                        "iterations, adaptivity) for an error budget, against a reference converged in dt and "
-                        "spacing, and the speed-up over today's defaults (dt 2 s at the scene's spacing) at their own "
-                        "error, with a 5-95% interval over resampled seeds. Above 1 a cheaper setting is as accurate "
-                        "as the defaults; 1 means none is (docs/studies/time_to_solution.md).",
     "stress": "The stability map: for dt, iterations, heating rate and alpha*dt, the largest value that stays stable "
               "(no NaN, no runaway speed or density error) and within the accuracy bound.",
     "renders": "No verdict: the report's pictures (clouds, Figure 1, Figure 3, the animation).",
