@@ -160,7 +160,9 @@ def run_tests(tree: Path, workdir: Path, python: str, tests: list[str],
     if junit.exists():
         for case in ET.parse(junit).getroot().iter("testcase"):
             if case.find("failure") is not None or case.find("error") is not None:
-                failing.append(f"{case.get('classname', '')}::{case.get('name', '')}")
+                # junit's classname is the dotted module (tests.test_x): back to pytest's node id, tests/test_x.py::name
+                module = case.get("classname", "").replace(".", "/")
+                failing.append(f"{module}.py::{case.get('name', '')}")
     if out.returncode == 0:
         return "passed", failing, secs
     if failing:
