@@ -370,7 +370,7 @@ def test_real_solver_resume_matches_in_every_column(tmp_path):
     assert resumed.resumed_from == 20
     for name in ("stats", "steps_table"):
         a, b = getattr(resumed, name)(), getattr(straight, name)()
-        assert [c for c in a.columns if not a[c].equals(b[c])] == [], name
+        assert [c for c in a.columns if c != "wall_ms" and not a[c].equals(b[c])] == [], name   # wall_ms: measured
 
 
 def test_a_peer_sending_a_huge_frame_is_one_line(tmp_path, monkeypatch):

@@ -351,7 +351,8 @@ def comparable(result) -> dict:
     """What must be identical between a recomputed run and the original."""
     info = {k: v for k, v in result.info.items()
             if k not in ("wall_s", "step_wall_s", "step_ms", "finished", "resumed_from")}
-    return {"info": info, "stats": result.stats(), "profiles": result.profiles(), "steps": result.steps_table(),
+    steps = result.steps_table().drop(columns=["wall_ms"], errors="ignore")   # a measurement, not a result
+    return {"info": info, "stats": result.stats(), "profiles": result.profiles(), "steps": steps,
             "timings": {k: v["count"] for k, v in result.timings().items()},
             "snapshot": result.snapshot()["position"]}
 
