@@ -175,3 +175,20 @@ def test_end_time_enters_the_run_key_only_when_set():
     assert timed.options()["end_time"] == 20.0 and timed.key() != spec.key()
     with pytest.raises(ValueError, match="end_time"):
         spec.replace(end_time=-1.0)
+
+
+def test_errors_below_the_seed_noise_floor_count_as_equal():
+    """Seed noise of 0.3 puts the noise floor above the defaults' error 0.2: the within-noise budget then takes the
+    cheapest setting under the floor (cheap_ok at 0.18, or cheaper ones whose error the floor covers), and says so."""
+    per_run, series, meta = synthetic(SPECS, noise=0.0)
+    frame, verdict = tts.analyse(per_run, series, meta, {"scene": "growing"}, replicates=20)
+    assert verdict["within_noise"]["error_budget"] == pytest.approx(0.2)   # no noise: the defaults' own error
+    assert verdict["within_noise"]["cheapest"]["setting"] == "cheap_ok"
+    floor = 0.7
+    point = {"error": frame["error"].to_numpy(), "cost": frame["wall_per_sim_s"].to_numpy(), "speedup": 4.0 / 1.5,
+             "picks": {name: None for name, _ in tts.BUDGET_FACTORS}}
+    point["picks"]["default"] = int(np.flatnonzero(frame["setting"] == "cheap_ok")[0])
+    default = int(np.flatnonzero(frame["setting"] == "default")[0])
+    noisy = tts.build_verdict(frame, point, default, {"speedup": [2.0, 3.0]}, {"scene": "growing"}, floor, 8)
+    assert noisy["within_noise"]["cheapest"]["setting"] == "cheap_bad"     # 0.6 <= the floor, the cheapest
+    assert "Within the noise floor the cheapest is cheap_bad" in noisy["verdict"]
