@@ -136,25 +136,21 @@ def _phases(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 
 def _scaling(inp: Inputs, sec: Section, env: dict | None) -> None:
-    pbf, pbf_path = inp.csv("pbf_scaling")
-    grid, grid_path = inp.csv("grid_scaling")
-    if pbf is None:
-        _missing(sec, "pbf_scaling.csv (particle solver step time against particle count)", "pbf_scaling", inp.out)
-    else:
-        sec.add("image", plots.pbf_scaling_plot(pbf), caption=f"PBF step (log-log) from {pbf_path.name}")
-        extra = pbf.copy()
-        if "step_ms" in extra and "particles" in extra:
-            extra["ns per particle"] = 1e6 * extra["step_ms"] / extra["particles"]
+    frames = []
+    for study, solver, unit, plot in (("pbf_scaling", "particle solver", "particle", plots.pbf_scaling_plot),
+                                      ("grid_scaling", "grid baseline", "cell", plots.grid_scaling_plot)):
+        frame, path = inp.csv(study)
+        frames.append(frame)
+        if frame is None:
+            _missing(sec, f"{study}.csv ({solver} step time against {unit} count)", study, inp.out)
+            continue
+        name = "PBF" if study == "pbf_scaling" else solver
+        sec.add("image", plot(frame), caption=f"{name} step (log-log) from {path.name}")
+        extra = frame.copy()
+        if "step_ms" in extra and f"{unit}s" in extra:
+            extra[f"ns per {unit}"] = 1e6 * extra["step_ms"] / extra[f"{unit}s"]
         sec.add("table", _table(extra))
-    if grid is None:
-        _missing(sec, "grid_scaling.csv (grid baseline step time against cell count)", "grid_scaling", inp.out)
-    else:
-        sec.add("image", plots.grid_scaling_plot(grid), caption=f"grid baseline step (log-log) from {grid_path.name}")
-        extra = grid.copy()
-        if "step_ms" in extra and "cells" in extra:
-            extra["ns per cell"] = 1e6 * extra["step_ms"] / extra["cells"]
-        sec.add("table", _table(extra))
-    sec.provenance = _provenance(pbf, grid, env=env)
+    sec.provenance = _provenance(*frames, env=env)
 
 
 def _benchmark_history(inp: Inputs, sec: Section, env: dict | None) -> None:
