@@ -79,6 +79,8 @@ def make_tree(tree: Path, ref: str) -> None:
     tree.mkdir(parents=True)
     archive = subprocess.run(["git", "-C", str(REPO), "archive", ref], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+    commit = run(["git", "-C", str(REPO), "rev-parse", "--short", ref]).stdout.strip()
+    (tree / ".mutants-commit").write_text(commit + "\n")
     overlay(tree)
 
 
@@ -263,10 +265,12 @@ def main() -> int:
         if not ok:
             log(f"warning: the unmutated rebuild failed: {tail}")
 
+    commit_file = tree / ".mutants-commit"
+    commit = commit_file.read_text().strip() if commit_file.exists() else "unknown"
     caught = sum(r["caught"] for r in results)
     by_prop = sum(r["by_property"] for r in results)
-    print(f"\nMutation score: {caught}/{len(results)} caught, {by_prop}/{len(results)} by a test of the property "
-          f"they break\n")
+    print(f"\nMutation score at {commit} (tests from the working tree): {caught}/{len(results)} caught, "
+          f"{by_prop}/{len(results)} by a test of the property they break\n")
     print("| mutant | file | outcome | caught by |")
     print("|---|---|---|---|")
     for r in results:
@@ -275,7 +279,7 @@ def main() -> int:
         flag = "" if r["by_property"] or not r["caught"] else " (not by its property)"
         print(f"| {r['id']} | {r['file']} | {r['outcome']}{flag} | {shown} |")
     report = workdir / "mutants-report.json"
-    report.write_text(json.dumps({"ref": args.ref, "results": results}, indent=1))
+    report.write_text(json.dumps({"ref": args.ref, "commit": commit, "results": results}, indent=1))
     print(f"\n(JSON: {report})")
     return 0 if by_prop == len(results) else 1
 
