@@ -112,11 +112,9 @@ class Particles:
 class Time:
     dt: float = _spec(2.0, 1e-6, 1e3, "s", "time step (the first step where cfl > 0)")
     reference_dt: float = _spec(2.0, 1e-6, 1e3, "s",
-                                "the step at which the per-step coefficients smoothing.kappa, pbf.xsph and pbf.scorr_k "
-                                "are stated (the paper's 2 s): at any dt they keep the same rate per simulated second "
-                                "(kappa, xsph: c(dt) = 1 - (1 - c)^(dt / reference_dt); s_corr's displacement times "
-                                "dt / reference_dt with the velocity projection, (dt / reference_dt)^2 with the "
-                                "position projection), so the model converges as dt shrinks")
+                                "the step at which the per-step coefficients smoothing.kappa and pbf.xsph are stated "
+                                "(the paper's 2 s): at any dt they keep the same rate per simulated second, "
+                                "c(dt) = 1 - (1 - c)^(dt / reference_dt), so the model converges as dt shrinks")
     cfl: float = _spec(0.0, 0.0, 2.0, "",
                        "0: every step is dt; > 0: each step is chosen so that max |v_i| dt / h_i (h_i the particle's "
                        "kernel radius) is this, within [dt_min, dt_max] and at most 1.25 times the step before")

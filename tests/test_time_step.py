@@ -47,10 +47,10 @@ def mean_kinetic_energy(sim, duration, sample=10.0):
 def test_halving_the_step_changes_the_statistics_less_and_less(name, backend):
     """The mean kinetic energy over the first 80 s (the thermals rising from the heating pattern; the gravity wave of
     `stratified`) at dt = 4, 2, 1 and 0.5 s: two halvings of the step shrink the change a halving makes at least
-    two-fold (first order shrinks it four-fold). Measured on the CPU, seed 0: growing 0.044 -> 0.0058, cumulus
-    0.0044 -> 0.0005, stratified 0.0026 -> 0.00012 m^2/s^2. With the coefficients stated per step instead (kappa,
-    XSPH and s_corr applied once per step whatever its length) growing's change stays at 0.03-0.05 and cumulus'
-    grows, so this test fails for that model."""
+    two-fold (first order shrinks it four-fold). Measured on the CPU, seed 0: growing 0.053 -> 0.015, cumulus
+    0.0056 -> 0.0013, stratified 0.0026 -> 0.00006 m^2/s^2. With kappa and XSPH stated per step instead
+    (applied once per step whatever its length) growing's change stays at 0.03-0.05 and cumulus' grows, so this
+    test fails for that model."""
     energy = {dt: mean_kinetic_energy(Simulation(scene_at(name, dt), backend=backend, seed=0), 80.0)
               for dt in (4.0, 2.0, 1.0, 0.5)}
     coarse = abs(energy[4.0] - energy[2.0])

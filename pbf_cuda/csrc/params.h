@@ -46,7 +46,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(bool, remove_column_drift, "pbf.remove_column_drift", true) /* velocity projection: sum m u_y = 0 */      \
     S(bool, remove_shift_drift, "pbf.remove_shift_drift", false) /* density solve: sum m dy = 0 (closed column) */\
     S(bool, shift_keeps_anomaly, "pbf.shift_keeps_anomaly", false) /* density shift dT = -Gamma_env dy */         \
-    S(float, scorr_k, "pbf.scorr_k", 0.01f)                /* tensile term relative to lambda_ref, at reference_dt */\
+    S(float, scorr_k, "pbf.scorr_k", 0.01f)                /* tensile term strength relative to lambda_ref */      \
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \
     S(float, scorr_dq, "pbf.scorr_dq", 0.2f)               /* dq / h */                                            \
     S(float, scorr_fine, "pbf.scorr_fine", 1.0f)           /* s_corr weight on pairs with a particle finer than level 0 */\

@@ -33,6 +33,8 @@ namespace PBF_BACKEND_NS {
 class Solver final : public ISolver {
 public:
     explicit Solver(const Params& p) {
+        // the shape energy (eq. 20) reads cloud water: the scene schema refuses this pair too, this guards raw Params
+        if (p.adaptive && !p.thermodynamics) throw std::invalid_argument("adaptive runs need thermodynamics");
         d_.p = p;
         d_.radii = make_level_radii(p.h0, p.mass0);
         d_.grid = make_solver_grid(p);
@@ -288,11 +290,7 @@ private:
     SolverData d_;
 
     // The per-step coefficients of the operators stated at reference_dt (time_step.h), at the step in use.
-    void set_step_coefficients() {
-        d_.rates = step_rates(d_.p);
-        d_.cp = make_constraint_params(d_.p);
-        if (d_.p.dt != d_.p.reference_dt) d_.cp.scorr_k_lambda *= d_.rates.scorr_scale;
-    }
+    void set_step_coefficients() { d_.rates = step_rates(d_.p); }
 };
 
 }  // namespace PBF_BACKEND_NS
