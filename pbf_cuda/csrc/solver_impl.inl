@@ -33,8 +33,6 @@ namespace PBF_BACKEND_NS {
 class Solver final : public ISolver {
 public:
     explicit Solver(const Params& p) {
-        // the shape energy (eq. 20) reads cloud water: the scene schema refuses this pair too, this guards raw Params
-        if (p.adaptive && !p.thermodynamics) throw std::invalid_argument("adaptive runs need thermodynamics");
         d_.p = p;
         d_.radii = make_level_radii(p.h0, p.mass0);
         d_.grid = make_solver_grid(p);
