@@ -40,7 +40,7 @@ public:
         d_.atm = make_atmosphere_params(p);
         d_.ap = make_adapt_params(p, d_.radii);
         d_.smoothing = smoothing_active(p);
-        set_step_coefficients();
+        d_.rates = step_rates(p);
         allocate_grid(d_);
     }
 
@@ -173,7 +173,7 @@ public:
                 std::string failure = check(d_, sums.checks, sums.end);
                 if (!failure.empty()) return failure;
             }
-            if (controlled && d_.n > 0) set_time_step(next_time_step(d_.p, d_.p.dt, sums.checks.rate_max));
+            if (controlled && d_.n > 0) set_time_step(next_time_step(d_.p, sums.checks.rate_max));
         }
         return std::string();
     }
@@ -181,14 +181,14 @@ public:
     // The step in use, s: the scene's dt, or the CFL-controlled one (time_step.h). Setting it re-derives every
     // per-step coefficient (the relaxations' c(dt), the atmosphere's dt and decays).
     double time_step() const override { return d_.p.dt; }
-    void set_neighbor_row_width(unsigned width) override { d_.nbr_width = std::max<uint32_t>(d_.nbr_width, width); }
     void set_time_step(double dt) override {
         if (!(dt > 0.0) || !std::isfinite(dt)) throw std::invalid_argument("time step must be positive and finite");
         if (float(dt) == d_.p.dt) return;
         d_.p.dt = float(dt);
-        set_step_coefficients();
+        d_.rates = step_rates(d_.p);
         d_.atm = make_atmosphere_params(d_.p);
     }
+    void set_neighbor_row_width(unsigned width) override { d_.nbr_width = std::max<uint32_t>(d_.nbr_width, width); }
 
     void adapt_now() override {
         if (!d_.p.adaptive) throw std::invalid_argument("adapt_now: the scene is not adaptive");
@@ -286,9 +286,6 @@ public:
 
 private:
     SolverData d_;
-
-    // The per-step coefficients of the operators stated at reference_dt (time_step.h), at the step in use.
-    void set_step_coefficients() { d_.rates = step_rates(d_.p); }
 };
 
 }  // namespace PBF_BACKEND_NS

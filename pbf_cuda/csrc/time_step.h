@@ -14,7 +14,7 @@
 // particles onto rho = rho0 with a regular arrangement, correcting the disorder the step's motion made (which
 // scales with dt), not adding a displacement per unit time. Stated as a rate instead (its displacement times
 // dt / dt_ref), a halved step regularised the arrangement less, and the stratified scene's wave lost energy at
-// less than first order in dt (0.81 of the loss at dt = 5 s with dt = 2.5 s, against 0.44 per iteration). Every
+// less than first order in dt (at dt = 2.5 s 0.81 of its loss at 5 s; 0.44 with s_corr per iteration). Every
 // other operator of the step is already a rate times dt or integrated exactly over dt (thermodynamics.h:
 // heating, buoyancy, phase change, relaxation, autoconversion; pbf_constraints.h: viscosity nu dt, vorticity
 // confinement eps dt).
@@ -58,10 +58,10 @@ inline StepRates step_rates(const Params& p) {
     return r;
 }
 
-// The step after one whose state has the largest |v_i| / h_i = rate_max (1/s), taken with dt.
-inline float next_time_step(const Params& p, float dt, float rate_max) {
+// The step after one (p.dt) whose state has the largest |v_i| / h_i = rate_max, 1/s.
+inline float next_time_step(const Params& p, float rate_max) {
     double next = rate_max > 0.0f ? double(p.cfl) / rate_max : double(p.dt_max);
-    next = std::min(next, 1.25 * double(dt));
+    next = std::min(next, 1.25 * double(p.dt));
     next = std::min(std::max(next, double(p.dt_min)), double(p.dt_max));
     return float(next);
 }
