@@ -10,7 +10,7 @@ plus the lists' skin of 0.1 h0, i itself included; the support alone for the row
 iterations), takes the state's order as the sort's (Simulation.state() returns the particles as the solver holds
 them, sorted by cell), and prints the rounds of four candidates the warps run against their rows' mean, overall and
 for the warps with and without a particle finer than level 0, and what ordering each tile of 64, 128 or 256
-particles by row length would leave (launch.h: order_tiles_by_length orders tiles of 128 on the GPU).
+particles by row length would leave (row_order.h: order_tiles_by_length orders tiles of 128 on the GPU).
 A state file holds position (n x 3, m), level and kernel_radius (m), as Simulation.state() gives them.
 """
 from __future__ import annotations

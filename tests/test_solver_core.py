@@ -239,7 +239,7 @@ for name, overrides, steps in (("dam_break", {}, 30), ("growing_adaptive", small
 
 @pytest.mark.gpu
 def test_gpu_row_order_decides_only_which_thread_computes_a_particle():
-    """The list passes' threads take each tile of particles longest row first (launch.h: order_tiles_by_length).
+    """The list passes' threads take each tile of particles longest row first (row_order.h: order_tiles_by_length).
     With that order switched off (CLOUDPBF_ROW_ORDER=0, read once per process) every state is the same to the bit:
     a dam break (rows of a free surface and of walls beside the bulk's) and an adaptive cloud that splits (rows of
     two levels)."""

@@ -30,7 +30,7 @@
 // team size. The merged particle replaces i at the midpoint (mass-weighted averages: equal masses);
 // j is marked dead and removed by the compaction that follows. A team's block meets only the blocks of the cells
 // within 2 of A, so A's team needs only those of earlier passes to have finished: on the GPU the 27 passes are one
-// launch in which each team waits for just those (launch.h: for_each_cell_by_colour), with the passes' results.
+// launch in which each team waits for just those (cell_walk.h: for_each_cell_by_colour), with the passes' results.
 #pragma once
 #include "common.h"
 #include "grid.h"
@@ -294,7 +294,7 @@ struct FindMergePartners {
 };
 
 // The race-free parallel merge, one cell's team (a warp on the GPU, one thread on the CPU), called for the cells in
-// 27 colours (launch.h: for_each_cell_by_colour). The team walks the cell's particles in index order, exactly as one
+// 27 colours (cell_walk.h: for_each_cell_by_colour). The team walks the cell's particles in index order, exactly as one
 // thread would; its lanes share only each midpoint's too-close search and vote on it, and the candidate's lane writes.
 // The result is therefore the same for any team size.
 struct MergeCell {
@@ -310,7 +310,7 @@ struct MergeCell {
     float* vapor;
     float* cloud;
     // A cell's team before its turn: what no other team changes while the cells merge (the cells' ranges, the merge
-    // candidates' marks and partners), read before the team waits for its turn (launch.h: for_each_cell_by_colour).
+    // candidates' marks and partners), read before the team waits for its turn (cell_walk.h: for_each_cell_by_colour).
     template <class Team>
     struct Turn {
         uint32_t start, end;

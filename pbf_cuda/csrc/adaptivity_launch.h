@@ -2,11 +2,17 @@
 // their shape energy (eq. 20), merge pairs in 27 coloured passes over the cells (Figure 4), split the
 // winners of the candidates' conflicts into the free slots, and compact the particles merges consumed.
 #pragma once
+#include <thrust/scan.h>
+
 #include <algorithm>
 #include <cmath>
 
 #include "adaptivity.h"
+#include "cell_walk.h"
+#include "counted_launch.h"
+#include "device_memory.h"
 #include "grid.h"
+#include "parallel_for.h"
 #include "solver_data.h"
 
 namespace pbf {

@@ -7,7 +7,9 @@
 #include <cmath>
 #include <vector>
 
+#include "device_memory.h"
 #include "grid.h"
+#include "parallel_for.h"
 #include "solver_data.h"
 
 namespace pbf {

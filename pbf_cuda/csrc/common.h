@@ -1,6 +1,7 @@
 // Shared basics for both backends: the host/device macro and small vector math.
 // Everything here compiles with nvcc (CUDA backend) and with g++ (OpenMP backend).
 #pragma once
+#include <math.h>   // the C names the device code calls unqualified (sqrtf, isfinite) in the global namespace
 #include <cmath>
 #include <cstdint>
 #include <cstring>

@@ -3,12 +3,19 @@
 // the domain, speed, temperature, water), the mean density error, the CFL number, a collapsed fluid, and
 // mechanical energy created where nothing forces the fluid.
 #pragma once
+#include <thrust/copy.h>
+#include <thrust/gather.h>
+#include <thrust/iterator/counting_iterator.h>
+
 #include <algorithm>
 #include <cmath>
 #include <string>
 #include <vector>
 
+#include "device_memory.h"
 #include "diagnostics.h"
+#include "parallel_for.h"
+#include "reduce.h"
 #include "solver_data.h"
 
 namespace pbf {

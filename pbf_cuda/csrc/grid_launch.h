@@ -4,8 +4,14 @@
 #pragma once
 #include <algorithm>
 
+#include "device_memory.h"
 #include "grid.h"
+#include "kernel_launch.h"
+#include "parallel_for.h"
+#include "reduce.h"
+#include "row_order.h"
 #include "solver_data.h"
+#include "sort.h"
 
 namespace pbf {
 namespace PBF_BACKEND_NS {

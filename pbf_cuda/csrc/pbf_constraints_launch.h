@@ -12,10 +12,16 @@
 //    and never adds kinetic energy; the density constraint is bilateral, so heated air cannot leave a
 //    rarefied layer behind.
 #pragma once
+#include <thrust/functional.h>
+
 #include <algorithm>
 #include <cmath>
+
+#include "device_memory.h"
 #include "kernels.h"
+#include "parallel_for.h"
 #include "pbf_constraints.h"
+#include "reduce.h"
 #include "solver_data.h"
 
 namespace pbf {

@@ -1,10 +1,15 @@
 // Launch code of the temperature smoothing (section 4.1, eq. 12-17; smoothing.h): one Jacobi pass over the
 // smoothed fields (temperature, optionally vapor and cloud) at the predicted positions.
 #pragma once
+#include <thrust/functional.h>
+
 #include <type_traits>
 
+#include "device_memory.h"
 #include "diagnostics_launch.h"
+#include "parallel_for.h"
 #include "pbf_constraints_launch.h"
+#include "reduce.h"
 #include "smoothing.h"
 #include "solver_data.h"
 

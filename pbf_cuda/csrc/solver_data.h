@@ -6,7 +6,10 @@
 #include <cmath>
 #include <utility>
 
-#include "launch.h"
+#include "counted_launch.h"
+#include "device_memory.h"
+#include "parallel_for.h"
+#include "phase_clock.h"
 
 #include "adaptivity.h"
 #include "diagnostics.h"
@@ -81,7 +84,7 @@ struct SolverData {
     dvec<uint32_t> nbr_count, nbr_index;  // this step's neighbour lists (neighbor_list.h), with pbf.neighbor_list
     uint32_t nbr_width = 32;              // the lists' row width (grows to the longest row seen, grid_launch.h)
     uint32_t nbr_row = 0, nbr_slot = 0;   // their layout: candidate k of particle i at i nbr_row + k nbr_slot
-    dvec<uint32_t> pass_order;            // GPU: the list passes' thread order, tiles by row length (launch.h)
+    dvec<uint32_t> pass_order;            // GPU: the list passes' thread order, tiles by row length (row_order.h)
     bool pass_order_ready = false;
     bool lists_ready = false;             // the lists belong to this step's sorted particles
     bool list_size_pending = false;       // their size is in this step's sums (grid_launch.h: take_list_size)
@@ -107,7 +110,7 @@ struct SolverData {
     // finish_adapt): adapt_from particles before, and until then n is the compaction's bound.
     bool adapt_waiting = false;
     std::size_t adapt_from = 0;
-    dvec<uint32_t> colour_done;              // adaptive runs: per cell, the merge walk's mark (launch.h: for_each_cell_by_colour)
+    dvec<uint32_t> colour_done;              // adaptive runs: per cell, the merge walk's mark (cell_walk.h: for_each_cell_by_colour)
     uint32_t colour_epoch = 0;               // the last merge walk's mark
     // Boundary particles (walls), sorted by cell once: they never move. Each cell's boundary candidates, gathered
     // once (grid.h, WallNeighbourhoods; boundaries_launch.h).

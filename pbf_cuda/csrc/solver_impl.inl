@@ -6,7 +6,9 @@
 //   kernels: kernels.h, grid.h, neighbor_list.h, pbf_constraints.h, smoothing.h, thermodynamics.h, adaptivity.h,
 //            diagnostics.h, noise.h
 //            (__host__ __device__ functors), kernel_policy.h (uniform vs adaptive runs as a policy type)
-//   launch:  launch.h (parallel_for, teams, reductions, timers), solver_data.h (the arrays), and one
+//   launch:  the dispatch layer, one mechanism a header: device_memory.h (device vectors, Thrust's policy),
+//            kernel_launch.h (CUDA launches), parallel_for.h, counted_launch.h, row_order.h, reduce.h, sort.h,
+//            cell_walk.h (the 27-colour walk), phase_clock.h (timers); solver_data.h (the arrays), and one
 //            *_launch.h per phase beside its kernels: grid, pbf_constraints, smoothing, thermodynamics,
 //            adaptivity, boundaries, diagnostics
 //   here:    Solver, the ISolver the bindings see: set-up, the step in the paper's order, views, statistics.
@@ -15,7 +17,9 @@
 #include <string>
 #include <vector>
 
-#include "launch.h"
+#include <thrust/copy.h>
+
+#include "device_memory.h"
 #include "solver_data.h"
 
 #include "adaptivity_launch.h"

@@ -4,6 +4,8 @@
 #pragma once
 #include <cmath>
 
+#include "device_memory.h"
+#include "reduce.h"
 #include "solver_data.h"
 #include "thermodynamics.h"
 
