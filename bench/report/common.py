@@ -10,11 +10,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from . import plots
+from bench.paper import PHASES, PAPER_TABLE1, paper_table as _paper_table  # noqa: F401
 from .inference import format_ci
 
-PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
-PHASES = plots.PHASES
 
 COMMANDS = {
     "environment": "cloudpbf demo --out {out}",
@@ -238,13 +236,6 @@ def _numeric(df: pd.DataFrame, col: str) -> pd.Series:
     return pd.to_numeric(df[col], errors="coerce") if col in df.columns else pd.Series(np.nan, index=df.index)
 
 
-
-
-def _paper_table() -> pd.DataFrame:
-    paper = pd.read_csv(PAPER_TABLE1)
-    phase_cols = [f"{p}_ms" for p in PHASES if f"{p}_ms" in paper.columns]
-    paper["total_ms"] = paper[phase_cols].sum(axis=1, min_count=1)
-    return paper
 
 
 def _variant(r) -> str:

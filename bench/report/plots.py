@@ -17,9 +17,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from bench.paper import PHASES  # noqa: E402
 from bench.pareto import pareto_front  # noqa: E402
 
-PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
 PHASE_COLORS = {"pbf": "#4c72b0", "smoothing": "#55a868", "cloud_dynamics": "#c44e52",
                 "splitting": "#8172b2", "merging": "#ccb974"}
 SERIES_STYLE = {  # (solver, mode) -> colour

@@ -26,6 +26,7 @@ import typer
 from bench import runs
 from bench import environment
 from bench.cli_common import Backend, BackendOpt, QuietOpt, RunsRootOpt, parse_list, run_command, scene_arg
+from bench.paper import PHASES
 from bench.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
@@ -34,7 +35,6 @@ SPLIT_TARGET_MS = 0.3      # per step, at ~500k particles on an H100/H200
 MERGE_TARGET_MS = 1.0
 TARGET_MIN_PARTICLES = 400_000   # meets_targets is left empty below this mean count or off the GPU
 WARMUP_STEPS = 5
-PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
 
 
 def _per_step(timings: dict, phase: str, steps: int):

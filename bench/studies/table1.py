@@ -36,7 +36,8 @@ import typer
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               refusals, study_context)
-from bench.studies.adaptive_pareto import DEFAULT_MAX_LEVEL, Config
+from bench.paper import PHASES, paper_table
+from bench.studies.adaptive_variants import DEFAULT_MAX_LEVEL, VERDICT, Config
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_scene
@@ -48,10 +49,8 @@ ROWS = (  # example, figure, mode, scene
     ("cycling", "5c", "non-adaptive", "cycling"),
     ("cycling", "5d", "adaptive", "cycling_adaptive"),
 )
-PHASES = ("pbf", "smoothing", "cloud_dynamics", "splitting", "merging")
 TABLE1_COLUMNS = ("example", "figure", "mode", "variant", "max_particles", *(f"{p}_ms" for p in PHASES),
                   "total_ms", "device", "commit")
-PAPER_TABLE1 = Path(__file__).resolve().parent.parent / "data" / "paper_table1.csv"
 
 
 MATCH_TOLERANCE = 0.2
@@ -63,15 +62,13 @@ CPU_TIMING_STEPS = 500
 
 def paper_rows() -> dict[tuple[str, str], dict]:
     """(example, mode) -> the paper's row, with its total_ms (sum of the phases it lists)."""
-    paper = pd.read_csv(PAPER_TABLE1)
-    paper["total_ms"] = paper[[f"{p}_ms" for p in PHASES]].sum(axis=1, skipna=True)
-    return {(r["example"], r["mode"]): r for r in paper.to_dict("records")}
+    return {(r["example"], r["mode"]): r for r in paper_table().to_dict("records")}
 
 
 def best_variant(ctx: StudyContext) -> tuple[str, dict] | None:
     """(name, scene overrides) of the growing study's best adaptive variant (adaptive_verdict.json in OUT/data),
     or None: no verdict, no best variant, or the best is the scene's own setting (the 5b row already)."""
-    path = ctx.data / "adaptive_verdict.json"
+    path = ctx.data / VERDICT
     try:
         best = json.loads(path.read_text()).get("best") or {}
     except (OSError, ValueError):
