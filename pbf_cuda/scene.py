@@ -120,9 +120,9 @@ class Time:
                        "kernel radius) is this, within [dt_min, dt_max] and at most 1.25 times the step before")
     dt_min: float = _spec(1e-6, 1e-6, 1e3, "s", "smallest CFL-controlled step")
     dt_max: float = _spec(1e3, 1e-6, 1e3, "s", "largest CFL-controlled step")
-    max_cfl: float = _spec(1.0, 1e-3, 1e3, "",
+    max_cfl: float = _spec(2.0, 1e-3, 1e3, "",
                            "a state whose CFL number max |v_i| dt / h_i is above this stops the run as unstable "
-                           "(a particle crossing its whole kernel support in one step)")
+                           "(a particle crossing the diameter of its kernel support in one step)")
     steps: int = _spec(400, 1, 10**7, "", "default number of steps of a run")
     snapshot_every: int = _spec(50, 1, 10**7, "", "steps between saved snapshots")
     check_every: int = _spec(1, 1, 64, "",

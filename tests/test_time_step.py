@@ -147,6 +147,29 @@ def test_a_collapsed_dam_break_is_unstable(backend):
         Simulation(lifted, backend=backend, seed=0).step(5)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cfl=st.floats(0.1, 4.0).filter(lambda c: abs(c / 2.0 - 1.0) > 0.01))
+def test_a_run_stops_exactly_when_a_particle_crosses_the_cfl_bound(backend, cfl):
+    """The stratified slab translated as a whole along its periodic x axis (no density change, no shear: every
+    operator leaves a uniform velocity alone): the CFL number is u dt / h for every particle, and the default
+    bound (2, the diameter of a particle's support per step) stops the run at step 1 exactly when it is above."""
+    scene = load_scene("stratified")
+    assert scene.time.max_cfl == 2.0
+    state = Simulation(scene, backend="cpu", seed=0).state()
+    velocity = np.zeros_like(state["velocity"])
+    velocity[:, 0] = cfl * scene.kernel_radius / scene.time.dt
+    state["velocity"] = velocity
+    sim = Simulation.from_arrays(scene, state, backend=backend)
+    if cfl > scene.time.max_cfl:
+        with pytest.raises(InstabilityError, match="CFL number") as err:
+            sim.step(3)
+        assert err.value.step == 1
+    else:
+        sim.step(3)
+        assert sim.stats()["cfl"] == pytest.approx(cfl, rel=1e-3)
+
+
 def test_an_unforced_fluid_that_gains_energy_is_unstable():
     """A box at rest without gravity whose particles are given a velocity field after the check took its
     reference: the mechanical energy rises from nothing, and the next check stops the run."""

@@ -36,7 +36,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, cfl, "time.cfl", 0.0f)                        /* > 0: dt = cfl min_i h_i / |v_i| each step */        \
     S(float, dt_min, "time.dt_min", 1e-6f)                 /* bounds of the controlled step, s */                 \
     S(float, dt_max, "time.dt_max", 1e3f)                                                                          \
-    S(float, max_cfl, "time.max_cfl", 1.0f)                /* max_i |v_i| dt / h_i above this is unstable */      \
+    S(float, max_cfl, "time.max_cfl", 2.0f)                /* max_i |v_i| dt / h_i above this is unstable */      \
     S(int, check_every, "time.check_every", 1)                                                                     \
     /* PBF (Macklin & Mueller 2013; paper eq. 1-4) */                                                              \
     S(int, iterations, "pbf.iterations", 4)                                                                        \
