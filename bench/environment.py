@@ -121,5 +121,5 @@ def environment(scale: str, backend: str) -> dict:
 
 
 def write_environment(out_dir: str | Path, scale: str, backend: str) -> Path:
-    from pbf_cuda.files import atomic_write_json
+    from cloudpbf_io.files import atomic_write_json
     return atomic_write_json(Path(out_dir) / "data" / "environment.json", environment(scale, backend))

@@ -24,7 +24,7 @@ large for the memory) is refused before its directory is made.
 An unstable run (NaN/Inf, velocity or density-error bound, particles escaping through a wall) is
 complete too: ``result.json`` holds ``stable: false`` with the reason, the step and the particle
 ids, the last good checkpoint stays, and no diagnostics of the failing state are stored.  Every
-file is written through pbf_cuda.files.atomic_path: a temporary name, fsync, ``os.replace``, fsync
+file is written through cloudpbf_io.files.atomic_path: a temporary name, fsync, ``os.replace``, fsync
 of the folder.
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ from bench.store.manifest import (finished_files, info_checksum, manifest, now, 
                                   verify_run)
 from bench.store.result import RunResult
 from bench.store.safe import StoreError, UnsafeFileError, append_line, entry_kind, read_json, store_error
-from pbf_cuda.files import atomic_write_json, remove_stale_temps
+from cloudpbf_io.files import atomic_write_json, remove_stale_temps
 from pbf_cuda.protocol import InstabilityError
 
 __all__ = ["execute", "execute_summary", "cached_result", "StoreError"]
@@ -227,7 +227,7 @@ class _Run:
         total = spec.total_steps
         chunk = 1 if spec.record_steps else 10
         failure = None
-        from pbf_cuda.progress import progress_bar as tqdm
+        from cloudpbf_io.progress import progress_bar as tqdm
         bar = tqdm(total=total, initial=sim.step_count, desc=f"{spec.solver} {spec.scene.name}", unit="step",
                    disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
         try:
@@ -307,7 +307,7 @@ class _Run:
                        f"{sim.scene.adaptive.capacity}); the run goes on without them")
             self.log(message)
             if not self.quiet:
-                from pbf_cuda.progress import progress_bar as tqdm
+                from cloudpbf_io.progress import progress_bar as tqdm
                 tqdm.write(f"warning: {message}")
             self.rejects_logged = rejects
         self.rejects = rejects

@@ -6,7 +6,7 @@
   seconds).  Units are in each file's field data (``<field>_unit``).
 * ``bgeo`` (particle runs only): Houdini's classic binary geometry, one ``<name>.0001.bgeo``,
   ``<name>.0002.bgeo``, ... per snapshot in time order (a File SOP reading ``<name>.$F4.bgeo`` plays
-  them), written by :mod:`pbf_cuda.bgeo` (numpy, no partio needed): ``P``, the vector ``v`` (m/s) and
+  them), written by :mod:`cloudpbf_io.bgeo` (numpy, no partio needed): ``P``, the vector ``v`` (m/s) and
   every other per-particle field under its own name; detail attributes ``time`` (s), ``step``,
   ``scene`` and ``<attribute>_unit``.  A grid run asked for bgeo raises :class:`FormatError`.
 * ``netcdf`` / ``zarr``: one ``xarray.Dataset`` with dimensions ``(time, x, y, z)`` on the cell
@@ -50,7 +50,7 @@ from bench.store.manifest import read_result, verify_run
 from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
 from bench.store.targets import (NETCDF_ATTR, ExportError, check_free_space, disk_error, foreign_entries,
                                   marker_of, staged)
-from pbf_cuda.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
+from cloudpbf_io.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
 
 __all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "ExportError", "particles_to_xarray", "run_to_xarray",
            "combine_solvers", "export_run", "run_info", "export_name"]
@@ -309,5 +309,5 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
 def load_series(pvd: str | Path) -> list:
     """The meshes of a .pvd series (pyvista), in time order."""
     import pyvista as pv
-    from pbf_cuda.export import read_pvd
+    from cloudpbf_io.export import read_pvd
     return [pv.read(f) for _, f in read_pvd(pvd)]

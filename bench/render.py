@@ -463,7 +463,7 @@ def render_animation(frames: Sequence[tuple[float, Mapping]], scene, out_gif, ou
     out_gif.parent.mkdir(parents=True, exist_ok=True)
     palette = [im.quantize(colors=128, method=Image.Quantize.MEDIANCUT) for im in images]
     durations = [frame_ms] * (len(palette) - 1) + [3 * frame_ms]
-    from pbf_cuda.files import atomic_path
+    from cloudpbf_io.files import atomic_path
     with atomic_path(out_gif) as tmp_gif:
         palette[0].save(tmp_gif, format="GIF", save_all=True, append_images=palette[1:], duration=durations,
                         loop=0)

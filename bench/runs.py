@@ -10,7 +10,7 @@ from bench.store.files import save_frame
 from bench.store.identity import RunSpec, code_version, default_root
 from bench.store.manifest import QUARANTINE, verify_run
 from bench.store.result import RunResult
-from pbf_cuda.files import atomic_write_json, atomic_write_text
+from cloudpbf_io.files import atomic_write_json, atomic_write_text
 
 __all__ = ["RunSpec", "RunResult", "execute", "execute_summary", "cached_result", "verify_run", "default_root",
            "code_version", "SOLVERS", "QUARANTINE", "save_frame", "write_csv", "atomic_write_json", "atomic_write_text"]

@@ -105,7 +105,7 @@ class SolverAdapter:
     @staticmethod
     def snapshot_points(snap: dict) -> dict:
         """A stored snapshot as points with per-point fields (position (N, 3) m, ...), as
-        pbf_cuda.export.write_particle_series takes them; particles already are."""
+        cloudpbf_io.export.write_particle_series takes them; particles already are."""
         return snap
 
     @staticmethod
@@ -310,7 +310,7 @@ class GridAdapter(SolverAdapter):
     @staticmethod
     def snapshot_dataset(snap: dict, scene, resolution=None, like=None):
         """The grid's own fields (resolution and like do not apply: the cells are the grid's)."""
-        from pbf_cuda.export import fields_to_xarray
+        from cloudpbf_io.export import fields_to_xarray
         fields = {k: v for k, v in snap.items() if k not in ("step", "time_s", "origin")}
         return fields_to_xarray(fields, time=float(snap.get("time_s", 0.0)), step=int(snap.get("step", 0)), attrs={
             "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": scene.name})
@@ -324,9 +324,9 @@ def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None,
     the origin, e.g. ``GridSimulation.to_xarray()``), else ``bench.statistics.grid_for_scene(scene,
     resolution)`` (default: one cell per particle spacing, the grid baseline's default).  Variables:
     ``density`` (kg/m^3) and the Shepard averages of temperature, vapor, cloud and velocity_x/y/z,
-    with the CF attributes of :data:`pbf_cuda.export.FIELD_ATTRS`."""
+    with the CF attributes of :data:`cloudpbf_io.export.FIELD_ATTRS`."""
     from bench import statistics
-    from pbf_cuda.export import fields_to_xarray
+    from cloudpbf_io.export import fields_to_xarray
     origin = np.zeros(3)
     if like is not None:
         shape = tuple(int(like.sizes[k]) for k in "xyz")

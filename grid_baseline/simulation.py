@@ -36,8 +36,8 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
-from pbf_cuda.export import fields_to_xarray
-from pbf_cuda.files import atomic_savez
+from cloudpbf_io.export import fields_to_xarray
+from cloudpbf_io.files import atomic_savez
 from pbf_cuda.noise import noise_offset_for_seed
 from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import Scene, SceneError, load_scene, scene_from_dict

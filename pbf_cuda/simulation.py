@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cloudpbf_io.files import atomic_savez, read_meta
+
 from . import initial_state
-from .files import atomic_savez, read_meta
 from .kernels import reference_gradient_norm2
 from .noise import noise_offset_for_seed
 from .protocol import InstabilityError
@@ -250,7 +251,7 @@ class Simulation:
         report = progress
         reporter = None
         if progress is True:
-            from .progress import Progress
+            from cloudpbf_io.progress import Progress
             reporter = Progress(total=n, desc=f"{self.scene.name} ({self.backend})", unit="step")
             report = lambda done, total: reporter.update_to(done)   # noqa: E731
         elif not callable(progress):
@@ -283,7 +284,7 @@ class Simulation:
         for .vtu): every array of :meth:`state` as point data, units in the field data
         (``<name>_unit``), the simulated time as ``TimeValue`` (s).  ``mesh.save("particles.vtp")``
         writes a file ParaView opens.  Needs pyvista (``pip install "cloudpbf[viz]"``)."""
-        from .export import state_to_pyvista
+        from cloudpbf_io.export import state_to_pyvista
         return state_to_pyvista(self.state(), kind, time=self.time, step=self.step_count,
                                 scene_name=self.scene.name)
 

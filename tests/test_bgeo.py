@@ -1,4 +1,4 @@
-"""Houdini's classic .bgeo (pbf_cuda.bgeo): the bytes of the header and records read with struct alone,
+"""Houdini's classic .bgeo (cloudpbf_io.bgeo): the bytes of the header and records read with struct alone,
 write -> read round trips bit for bit, a property over random clouds, gzip, and the refusals."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
-from pbf_cuda.bgeo import decode_bgeo, encode_bgeo, read_bgeo, write_bgeo
-from pbf_cuda.export import PARTICLE_UNITS, state_to_bgeo, write_bgeo_series
+from cloudpbf_io.bgeo import decode_bgeo, encode_bgeo, read_bgeo, write_bgeo
+from cloudpbf_io.export import PARTICLE_UNITS, state_to_bgeo, write_bgeo_series
 
 
 def _state(n, rng, step=0, time=0.0):

@@ -137,7 +137,7 @@ def test_step_progress_true_prints_plain_lines_off_a_terminal(capfd, monkeypatch
 
 
 def test_plain_progress_is_periodic(capsys):
-    from pbf_cuda.progress import PlainProgress, progress_bar
+    from cloudpbf_io.progress import PlainProgress, progress_bar
     bar = PlainProgress(total=100, desc="runs", unit="run", interval=3600, file=sys.stdout)
     for _ in range(100):
         bar.update(1)

@@ -15,7 +15,7 @@ pytest.importorskip("zarr")
 from typer.testing import CliRunner  # noqa: E402
 
 from bench.cli import app  # noqa: E402
-from pbf_cuda.export import (COORD_ATTRS, FIELD_ATTRS, PARTICLE_UNITS, fields_to_xarray, read_pvd,  # noqa: E402
+from cloudpbf_io.export import (COORD_ATTRS, FIELD_ATTRS, PARTICLE_UNITS, fields_to_xarray, read_pvd,  # noqa: E402
                              state_to_pyvista, write_particle_series)
 
 runner = CliRunner()
@@ -156,7 +156,7 @@ def test_cli_export_particle_run_all_formats(particle_sim, tmp_path):
 
     res = runner.invoke(app, ["export", str(run_dir), "--format", "bgeo", "--out", str(tmp_path / "bgeo")])
     assert res.exit_code == 0, res.output
-    from pbf_cuda.bgeo import read_bgeo
+    from cloudpbf_io.bgeo import read_bgeo
     frames = sorted((tmp_path / "bgeo").glob("particles-growing.*.bgeo"))
     assert len(frames) == len(snaps) and frames[0].name == "particles-growing.0001.bgeo"
     back = read_bgeo(frames[-1])
@@ -205,7 +205,7 @@ def _stored_run(root, solver, frames, finished=True):
     """A run directory as `cloudpbf run` leaves it (config.json identity, snapshots/step_*.npz), made
     without the solver, so the export path runs where the compiled solver is absent."""
     from pbf_cuda import load_scene
-    from pbf_cuda.files import json_default
+    from cloudpbf_io.files import json_default
     scene = load_scene("growing").to_dict()
     scene["scene"] = {"name": "growing"}
     run_dir = root / f"{solver}-growing-0123456789abcdef"
@@ -223,7 +223,7 @@ def _stored_run(root, solver, frames, finished=True):
 
 
 def test_cli_export_bgeo_writes_one_houdini_frame_per_snapshot(tmp_path):
-    from pbf_cuda.bgeo import read_bgeo
+    from cloudpbf_io.bgeo import read_bgeo
     rng = np.random.default_rng(6)
     frames = [_fake_state(40, rng, 0, 0.0), _fake_state(45, rng, 10, 20.0), _fake_state(50, rng, 20, 40.0)]
     run_dir = _stored_run(tmp_path, "particles", frames)

@@ -25,7 +25,7 @@ pytest.importorskip("pyvista")
 
 from bench.cli import app  # noqa: E402
 from bench.store.manifest import info_checksum, manifest  # noqa: E402
-from pbf_cuda.files import json_default  # noqa: E402
+from cloudpbf_io.files import json_default  # noqa: E402
 from pbf_cuda.scene import NAME_PATTERN, SceneError, load_scene, sanitize_name, scene_from_dict  # noqa: E402
 
 runner = CliRunner()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from bench import solvers
-from pbf_cuda.files import atomic_path
+from cloudpbf_io.files import atomic_path
 from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import load_scene
 

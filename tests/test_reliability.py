@@ -31,7 +31,8 @@ from bench import runs
 from bench.cli import app
 from bench.store import manifest
 from bench.store.files import sha256_file
-from pbf_cuda import files, initial_state
+from cloudpbf_io import files
+from pbf_cuda import initial_state
 from pbf_cuda.memory import boundary_count, check_memory, estimate_memory
 from pbf_cuda.scene import MAX_SCENE_BYTES, SCENE_DIR, Scene, SceneError, list_scenes, load_scene, scene_from_dict
 from test_harness_toy import ToySimulation, toy_scene, toy_solver  # noqa: F401  (fixture)
@@ -601,7 +602,7 @@ def test_kill_9_during_a_run_loses_nothing(toy_solver, tmp_path, when):
 WRITER = textwrap.dedent("""
     import sys
     sys.path[:0] = [{root!r}]
-    from pbf_cuda import files
+    from cloudpbf_io import files
     i = 0
     while True:
         i += 1

@@ -203,7 +203,7 @@ def build_report(out_dir) -> Path:
         Markup=jinja2.utils.markupsafe.Markup,
     )
     target = out / "index.html"
-    from pbf_cuda.files import atomic_write_text
+    from cloudpbf_io.files import atomic_write_text
     atomic_write_text(target, page)
     return target
 

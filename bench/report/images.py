@@ -67,7 +67,7 @@ def place_images(sections, out: Path) -> None:
     """Shrink every image block of `sections` that is too large for the page and set its ``full`` link: the
     file it came from when under `out`, else a file written to OUT/figures (whose stale files from earlier
     builds are removed)."""
-    from pbf_cuda.files import atomic_write_bytes
+    from cloudpbf_io.files import atomic_write_bytes
     out = Path(out).resolve()
     folder = out / FIGURES
     written = set()

@@ -1,4 +1,4 @@
-"""Atomic writers of the run store (tables, arrays) on pbf_cuda.files.atomic_path, and file checksums
+"""Atomic writers of the run store (tables, arrays) on cloudpbf_io.files.atomic_path, and file checksums
 (sha256_file: bench.store.safe's, which never follows links and reads regular files only)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.store.safe import sha256_file
-from pbf_cuda.files import atomic_path
+from cloudpbf_io.files import atomic_path
 
 __all__ = ["save_frame", "save_npz", "sha256_file"]
 

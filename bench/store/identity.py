@@ -27,7 +27,7 @@ from typing import Iterable
 import numpy as np
 
 from bench.solvers import ADAPTERS, SOLVERS
-from pbf_cuda.files import json_default
+from cloudpbf_io.files import json_default
 from pbf_cuda.scene import Scene
 
 __all__ = ["RunSpec", "effective_seed", "code_version", "code_sources", "default_root", "is_checkout", "REPO_ROOT", "RUN_FORMAT"]
@@ -36,7 +36,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent.parent
 RUN_FORMAT = 2          # bump when the run directory layout or the loop's semantics change
 MAX_STEPS = 10**7
 SOURCE_SUFFIXES = (".py", ".h", ".hpp", ".cuh", ".cu", ".cpp", ".cc", ".c", ".inl")
-FIRST_PARTY = ("pbf_cuda", "grid_baseline", "bench")   # the packages whose sources a code version reads
+FIRST_PARTY = ("cloudpbf_io", "pbf_cuda", "grid_baseline", "bench")   # the packages whose sources a code version reads
 # Compiled modules and the source files (relative to the repository) they are built from.
 NATIVE_SOURCES = {"pbf_cuda._core": ("pbf_cuda/csrc", "CMakeLists.txt")}
 

@@ -18,7 +18,7 @@ from typing import Iterable
 
 from bench.store.safe import (StoreError, UnsafeFileError, append_line, entry_kind, read_json, sha256_file,
                               store_error)
-from pbf_cuda.files import fsync_dir, is_temp, json_default
+from cloudpbf_io.files import fsync_dir, is_temp, json_default
 
 __all__ = ["QUARANTINE", "QUARANTINE_KEEP", "manifest", "info_checksum", "verify_run", "quarantine",
            "quarantine_entry", "quarantine_folders", "prune_quarantine", "finished_files", "now", "read_result",

@@ -21,7 +21,7 @@ import uuid
 from pathlib import Path
 
 from bench.store.safe import UnsafeFileError, entry_kind, read_json
-from pbf_cuda.files import atomic_write_json, fsync_dir
+from cloudpbf_io.files import atomic_write_json, fsync_dir
 
 __all__ = ["ExportError", "MARKER", "marker_of", "staged", "disk_error", "check_free_space", "foreign_entries"]
 

@@ -229,7 +229,7 @@ class StudyContext:
 
     def run_parallel(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:
         """Run the specs the cache lacks on the dask cluster; results in the order of `specs`."""
-        from pbf_cuda.progress import progress_bar as tqdm
+        from cloudpbf_io.progress import progress_bar as tqdm
         keys = [spec.key() for spec in specs]
         unique = dict(zip(keys, specs))
         done = {}

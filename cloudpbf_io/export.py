@@ -11,7 +11,7 @@ Pure Python + numpy at import time; pyvista and xarray are imported when a funct
 * :func:`write_pvd` writes a ParaView collection (``.pvd``) that makes a series of such files one
   time series (ParaView's time slider reads the ``timestep`` attribute: simulated seconds).
 * :func:`state_to_bgeo` and :func:`write_bgeo_series` write particle states as Houdini's classic
-  binary geometry (:mod:`pbf_cuda.bgeo`, numpy only): one ``name.0001.bgeo`` per frame, the frame
+  binary geometry (:mod:`cloudpbf_io.bgeo`, numpy only): one ``name.0001.bgeo`` per frame, the frame
   number Houdini's ``$F4`` expands to (1, 2, ... in time order), positions as ``P``, ``velocity``
   as the vector attribute ``v``, every other per-particle field under its own name (``id`` and
   ``level`` as int), and detail attributes ``time`` (s), ``step``, ``scene`` and ``<attribute>_unit``.
@@ -185,7 +185,7 @@ BGEO_NAMES = {"position": "P", "velocity": "v"}
 def state_to_bgeo(state: Mapping[str, np.ndarray], time: float | None = None, step: int | None = None,
                   scene_name: str | None = None):
     """(position, point attributes, detail attributes) of a particle state, as
-    :func:`pbf_cuda.bgeo.write_bgeo` takes them.
+    :func:`cloudpbf_io.bgeo.write_bgeo` takes them.
 
     ``velocity`` becomes the vector ``v``; every other per-particle array keeps its name (scalars such as
     ``step`` and arrays of another length are skipped); ``id`` (uint32) is stored as int, the format's
