@@ -148,7 +148,7 @@ app.add_typer(runs_app, name="runs")
 @app.command()
 def report(out: OutOpt = DEFAULT_OUT) -> None:
     """Build OUT/index.html from what OUT/data holds (missing studies are shown as not run)."""
-    from bench.studies.demo import build_report
+    from bench.studies.page import build_report
     if not (out / "data").is_dir():
         raise typer.BadParameter(f"{out / 'data'} does not exist; run a study (e.g. `cloudpbf demo`) first",
                                  param_hint="'--out'")

@@ -1,6 +1,9 @@
-"""What every command of `cloudpbf` shares: the click typer runs on, the common options, and the
-helpers that turn bad arguments into one line and exit code 2.  bench.cli and the study modules (whose
-commands the CLI finds through bench.studies.registry) build their commands from these."""
+"""What every command of `cloudpbf` shares: the click typer runs on, the common options, the helpers that
+turn bad arguments into one line and exit code 2, and the StudyContext a study command opens.
+
+It sits on the studies' floor (beside bench.studies.context and scales, below every study): the study modules
+build their commands from it, and so does the face (bench.cli, which finds the studies' commands through
+bench.studies.registry).  It never imports a study or the face."""
 from __future__ import annotations
 
 import contextlib
@@ -12,6 +15,11 @@ from typing import Annotated, Optional
 
 import typer
 import typer.rich_utils
+
+from bench import environment, runs
+from bench.store.safe import StoreError
+from bench.studies.context import GpuError, SchedulerError, StudyContext, check_scheduler_address
+from bench.studies.scales import resolve_scale
 
 # The click that typer runs on: the click package up to typer 0.24, typer's own vendored copy from 0.25
 # on.  Exceptions must come from that one, or typer does not turn them into "Usage: ... Error: ..." and
@@ -164,8 +172,6 @@ def check_backend(backend: Backend, solver: str = "particles") -> None:
 def refusals(particles: Optional[int] = None):
     """What a command cannot do as asked ends in one line and exit code 2: scene and memory checks,
     an unusable scheduler, a stale compiled solver, a run cache that cannot be written."""
-    from bench.store.safe import StoreError
-    from bench.studies.context import GpuError, SchedulerError
     from pbf_cuda.buildinfo import StaleBuildError
     from pbf_cuda.scene import SceneError
     try:
@@ -197,10 +203,6 @@ def refusing(command):
 
 def study_context(out: Path, runs_root: Optional[Path], scale: ScaleName, backend: Backend, workers: Optional[int],
                   scheduler: Optional[str], quiet: bool, gpus: Optional[str] = None, cuda_cluster_factory=None):
-    from bench import runs
-    from bench.studies.context import SchedulerError, StudyContext, check_scheduler_address
-    from bench.studies.scales import resolve_scale
-    from bench.environment import write_environment
     check_folder(out, "--out")
     check_folder(runs_root, "--runs-root")
     with refusals():
@@ -217,7 +219,7 @@ def study_context(out: Path, runs_root: Optional[Path], scale: ScaleName, backen
         ctx.check_gpus()                  # no GPU, too few, no dask-cuda: one line, before any run
         if scheduler is not None and scheduler != "inline":
             ctx.client()                  # fail now, in one line, when no scheduler answers
-    write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran
+    environment.write_environment(ctx.out, ctx.scale.environment_label, ctx.particle_backend())   # every study says where it ran
     return ctx
 
 

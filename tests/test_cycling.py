@@ -287,7 +287,7 @@ def test_clouds_disappear_and_reappear_at_cpu_scale(kind, seed):
 
 
 def test_report_shows_the_cycling_study(tmp_path):
-    from bench.report import build_report
+    from bench.studies.page import build_report
     data = tmp_path / "data"
     data.mkdir()
     t = np.arange(0.0, 2400.0, 40.0)

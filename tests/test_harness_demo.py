@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from bench import runs
-from bench.report.build import SECTIONS
+from bench.studies.page import sections
 from bench.studies.table1 import TABLE1_COLUMNS
 
 pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
@@ -33,7 +33,7 @@ def test_smoke_demo_writes_every_study_and_the_report(tmp_path):
     index = out / "index.html"
     assert f"report: {index}" in proc.stdout
     html = index.read_text()
-    for section_id, _ in SECTIONS:
+    for section_id in [r.id for r in sections()]:
         assert f'id="{section_id}"' in html, section_id
     for name in DATA_FILES:
         assert (out / "data" / name).is_file(), name

@@ -160,7 +160,7 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
     again = tts.rebuild(data, "growing", replicates=20)
     assert again["verdict"]["device"] == verdict["device"]
     from bench.report.common import Inputs, Section
-    from bench.report.time_to_solution import section
+    from bench.studies.time_to_solution.report import time_to_solution_section as section
     sec = Section("time_to_solution", "Time to solution")
     section(Inputs(ctx.out), sec, None)
     assert any(b.kind == "image" for b in sec.blocks) and not sec.missing

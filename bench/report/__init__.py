@@ -1,13 +1,15 @@
-"""The HTML report: ``build_report(OUT)`` turns OUT/data into OUT/index.html.
+"""The HTML report's primitives: the page model, the reader of OUT/data, tables, figures, images, the verdict
+cards and the page assembly (``build.build_report(OUT, catalogue)``).  The studies declare their sections
+(bench.report.catalogue); bench.studies.page hands them to the assembly.  This package never imports the studies.
 
 The package's names load lazily, so a study can use ``bench.report.inference`` (scipy only) without importing
 matplotlib and jinja2 with the page's builders."""
 
-__all__ = ["build_report", "report_sections", "SECTIONS", "COMMANDS"]
+__all__ = ["build_report", "report_sections"]
 
 
 def __getattr__(name):
-    if name in __all__:   # SECTIONS: (id, title) of every section, in page order, from the study registry
+    if name in __all__:
         from . import build
         return getattr(build, name)
     raise AttributeError(name)

@@ -1,14 +1,15 @@
-"""Build the HTML report from a study's output directory.
+"""Assemble the HTML report of an output directory from the sections the studies declare.
 
-``build_report(OUT)`` reads only ``OUT/data`` (layout below) and writes ``OUT/index.html``: figures
+``build_report(OUT, catalogue)`` reads only ``OUT/data`` (layout below) and writes ``OUT/index.html``: figures
 embedded at screen size (bench.report.images; a click opens the full-size file beside the page, under
 ``OUT/data/renders`` or ``OUT/figures``), styles inline, no external URL, so it opens offline.  The first
 screen is the verdict cards (bench.report.glance); the header names every device, commit and scale the
 sections' data come from; the environment comes last.  A missing input turns its section (or part of it)
 into a visible "not run in this study" note with the command that produces it; nothing is ever filled in.
 
-The section builders live in modules by subject (common, glance, timing, physics, tradeoffs, pictures);
-this module imports them, so ``bench.report.build:<builder>`` names every one of them.
+The sections, verdict cards and the commands that make each input come from the studies, in a
+:class:`bench.report.catalogue.Catalogue` (bench.studies.page builds it from the study registry; ``cloudpbf report
+--out OUT`` runs both); the page adds its own summary (the cards) and environment.
 
     OUT/data/environment.json        device, backend, commit, date, python, versions, scale
     OUT/data/table1.csv              example,figure,mode,max_particles,<phase>_ms...,total_ms,device,commit
@@ -32,39 +33,25 @@ from pathlib import Path
 import jinja2
 import pandas as pd
 
-from .common import (COMMANDS, PAPER_TABLE1, PHASES, Block, Inputs, Section, _missing, _table,  # noqa: F401
-                     short_commit, step_time_ratios)
-from .glance import _summary  # noqa: F401
+from .catalogue import Catalogue, ReportSection
+from .common import Block, Inputs, Provenance, Section, _missing, _table, short_commit
+from .glance import summary
 from .images import place_images
-from .physics import _adaptive, _compare, _compare_and_cycling, _shallow_cumulus, adaptive_tests  # noqa: F401
-from .pictures import _figure1, _figure3, _render_blocks, _renders  # noqa: F401
-from .timing import _benchmark_history, _peers, _phases, _scaling, _table1, paper_comparison  # noqa: F401
-from .tradeoffs import _adaptive_pareto, _stress, _sweep, stress_frame, stress_limits  # noqa: F401
 
-__all__ = ["build_report", "report_sections", "SECTIONS", "COMMANDS", "PAPER_TABLE1"]
+__all__ = ["build_report", "report_sections"]
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
-SHORT_TITLES = {"summary": "Verdicts", "table1": "Table 1", "phases": "Phases", "benchmark_history": "History",
-                "peers": "SPlisHSPlasH", "adaptive": "Adaptive", "compare": "Particles vs grid",
-                "shallow_cumulus": "Cumulus", "sweep": "Time vs error", "adaptive_pareto": "Adaptive front",
-                "stress": "Stability", "renders": "Renders", "figure1": "Fig. 1", "figure3": "Fig. 3",
-                "environment": "Environment", "scaling": "Scaling", "time_to_solution": "Time to solution"}
-"""The navigation's label of each section (its title where not listed), short enough for one row at 1366 px."""
 
 
-def report_sections():
-    """Every section of the page, in order: the report's own (environment, the summary) and those the
-    studies own (``ReportSection`` in each study's registration, bench.studies.registry)."""
-    from bench.studies.registry import ReportSection, report_sections as owned
-    own = (ReportSection("summary", "At a glance", f"{__name__}:_summary", 5),
-           ReportSection("environment", "Environment", f"{__name__}:_environment", 10_000))
-    return tuple(sorted(own + owned(), key=lambda r: (r.order, r.id)))
-
-
-def __getattr__(name):
-    if name == "SECTIONS":   # (id, title) of every section, in order; every id is always present in the page
-        return tuple((r.id, r.title) for r in report_sections())
-    raise AttributeError(name)
+def report_sections(catalogue: Catalogue) -> tuple[ReportSection, ...]:
+    """Every section of the page, in order: the page's own (the summary of verdict cards, the environment) and
+    those of the catalogue (the studies')."""
+    def _summary(inp: Inputs, sec: Section, env: dict | None) -> None:
+        summary(inp, sec, env, catalogue.cards, {r.id: r.title for r in sections})
+    own = (ReportSection("summary", "At a glance", _summary, 5, "Verdicts"),
+           ReportSection("environment", "Environment", _environment, 10_000))
+    sections = tuple(sorted(own + tuple(catalogue.sections), key=lambda r: (r.order, r.id)))
+    return sections
 
 
 # ------------------------------------------------------------------------------------------
@@ -72,7 +59,7 @@ def __getattr__(name):
 # ------------------------------------------------------------------------------------------
 def _environment(inp: Inputs, sec: Section, env: dict | None) -> None:
     if env is None:
-        _missing(sec, "environment.json", "environment", inp.out)
+        _missing(sec, "environment.json", "environment", inp)
         return
     rows = [(k, v) for k, v in env.items() if k != "versions" and not isinstance(v, (dict, list))]
     sec.add("kv", rows)
@@ -88,7 +75,6 @@ def _environment(inp: Inputs, sec: Section, env: dict | None) -> None:
 
 
 def _provenance_of_environment(env: dict):
-    from .common import Provenance
     return Provenance.of([str(env["device"])] if env.get("device") else [],
                          [short_commit(env["commit"])] if env.get("commit") else [],
                          [str(env["scale"])] if env.get("scale") else [])
@@ -123,15 +109,8 @@ def _lock_check(sec: Section, env: dict) -> None:
         sec.add("text", f"Locked but not installed here: {', '.join(absent)}.")
 
 
-def study_of_section() -> dict:
-    """Which demo study (a key of demo_status.json) writes the inputs of each section (as each study
-    declares in bench.studies.registry)."""
-    from bench.studies.registry import demo_studies
-    return {section: s.name for s in demo_studies() for section in s.sections}
-
-
-def _study_failure(status: dict, section_id: str) -> str:
-    study = study_of_section().get(section_id)
+def _study_failure(status: dict, section_id: str, study_of_section) -> str:
+    study = study_of_section.get(section_id)
     entry = status.get(study) if study else None
     if not isinstance(entry, dict) or entry.get("ok", True):
         return ""
@@ -142,14 +121,15 @@ def _study_failure(status: dict, section_id: str) -> str:
     return f"The {study} study failed in this run: {short}"
 
 
-def page_provenance(sections) -> dict:
+def page_provenance(sections, short_titles: dict) -> dict:
     """The header's provenance: every device, commit and scale of the sections' data, each with the sections it
-    comes from ({"devices": [(value, [titles])], "commits": ..., "scales": ...})."""
+    comes from ({"devices": [(value, [titles])], "commits": ..., "scales": ...}); titles: the navigation's
+    (`short_titles`: section id -> label)."""
     found = {"devices": {}, "commits": {}, "scales": {}}
     for sec in sections:
         if sec.id in ("summary", "environment"):
             continue
-        title = SHORT_TITLES.get(sec.id, sec.title)
+        title = short_titles.get(sec.id, sec.title)
         for key in found:
             for value in getattr(sec.provenance, key, ()):
                 found[key].setdefault(value, []).append(title)
@@ -163,12 +143,13 @@ def page_provenance(sections) -> dict:
 # ------------------------------------------------------------------------------------------
 # entry point
 # ------------------------------------------------------------------------------------------
-def build_report(out_dir) -> Path:
-    """Write OUT/index.html from OUT/data and return its path (atomic write)."""
+def build_report(out_dir, catalogue: Catalogue) -> Path:
+    """Write OUT/index.html from OUT/data with the sections and cards of `catalogue`; return its path (atomic
+    write)."""
     out = Path(out_dir).resolve()
     if not out.exists():
         raise FileNotFoundError(f"report directory {out} does not exist (run a study first, e.g. cloudpbf demo)")
-    inp = Inputs(out)
+    inp = Inputs(out, catalogue.commands)
     try:
         env = inp.environment()
         env_error = None
@@ -176,10 +157,12 @@ def build_report(out_dir) -> Path:
         env, env_error = None, f"{type(exc).__name__}: {exc}"
     status = inp.study_status()
     sections = []
-    for owned in report_sections():
+    declared = report_sections(catalogue)
+    short_titles = {r.id: r.label for r in declared}
+    for owned in declared:
         sid = owned.id
         sec = Section(sid, owned.title)
-        failure = _study_failure(status, sid)
+        failure = _study_failure(status, sid, catalogue.study_of_section)
         if failure:
             sec.add("note", failure, level="error")
         try:
@@ -195,7 +178,7 @@ def build_report(out_dir) -> Path:
     template = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
                                  undefined=jinja2.StrictUndefined).get_template("report.html.j2")
     page = template.render(
-        sections=sections, env=env or {}, provenance=page_provenance(sections), short_titles=SHORT_TITLES,
+        sections=sections, env=env or {}, provenance=page_provenance(sections, short_titles), short_titles=short_titles,
         generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         scale=(env or {}).get("scale", "unknown"),
         n_missing=sum(s.missing for s in sections),
@@ -206,17 +189,3 @@ def build_report(out_dir) -> Path:
     from cloudpbf_io.files import atomic_write_text
     atomic_write_text(target, page)
     return target
-
-
-def main(argv=None) -> int:
-    """``python -m bench.report.build OUT``: build OUT/index.html and print its path."""
-    import argparse
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out", nargs="?", default="reports/latest", help="study output directory (holds data/)")
-    args = parser.parse_args(argv)
-    print(build_report(args.out))
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

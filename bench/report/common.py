@@ -1,5 +1,6 @@
-"""What every section builder shares: the page model (Block, Section), the reader of OUT/data (Inputs), the
-commands that make each input, table formatting, provenance and the paper's Table 1."""
+"""What every section builder shares: the page model (Block, Section), the reader of OUT/data (Inputs, which
+knows the command that makes each input), notes on missing inputs, render blocks, table formatting, provenance
+and the paper's Table 1."""
 from __future__ import annotations
 
 import json
@@ -11,26 +12,10 @@ import numpy as np
 import pandas as pd
 
 from bench.paper import PHASES, PAPER_TABLE1, paper_table as _paper_table  # noqa: F401
+from . import plots
 from .inference import format_ci
 
 
-COMMANDS = {
-    "environment": "cloudpbf demo --out {out}",
-    "table1": "cloudpbf table1 --out {out}",
-    "pbf_scaling": "cloudpbf scaling --out {out}",
-    "grid_scaling": "cloudpbf grid-scaling --sizes 32,64,128 --out {out}/data/grid_scaling.csv",
-    "adaptive_cost": "cloudpbf adaptive-cost --spacing 45 --out {out}/data/adaptive_cost.csv",
-    "constant_gravity": "cloudpbf constant-gravity --out {out}/data/constant_gravity.csv",
-    "compare": "cloudpbf compare growing --out {out}",
-    "shallow_cumulus": "cloudpbf shallow-cumulus --out {out}",
-    "sweep": "cloudpbf sweep --out {out}",
-    "adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}",
-    "stress": "cloudpbf stress --out {out}",
-    "renders": "cloudpbf demo --out {out}",
-    "benchmark_history": "cloudpbf benchmark-history --out {out}",
-    "peers": "cloudpbf peers --out {out}/data/cpu_peer.csv",
-}
-"""The command that produces each input (shown when it is missing)."""
 
 
 # ------------------------------------------------------------------------------------------
@@ -64,10 +49,12 @@ class Section:
 
 
 class Inputs:
-    """Reads OUT/data: CSVs, environment.json and renders."""
+    """Reads OUT/data: CSVs, environment.json and renders.  `commands`: input key -> the command that produces
+    it, ``{out}`` standing for the output folder (bench.report.catalogue.Catalogue.commands)."""
 
-    def __init__(self, out_dir: Path):
+    def __init__(self, out_dir: Path, commands: dict | None = None):
         self.out = Path(out_dir)
+        self.commands = dict(commands or {})
         self.data = self.out / "data"
         self.renders = self.data / "renders"
         self._cache: dict[str, tuple[pd.DataFrame | None, Path | None]] = {}
@@ -122,12 +109,27 @@ def _shown_path(path: Path) -> str:
         return path.name
 
 
-def _command(key: str, out: Path) -> str:
-    return COMMANDS[key].format(out=_shown_path(out))
+def _command(key: str, inp: Inputs) -> str:
+    """The command that produces input `key` in the report's folder ('' where no study declares one)."""
+    template = inp.commands.get(key)
+    return template.format(out=_shown_path(inp.out)) if template else ""
 
 
-def _missing(section: Section, what: str, key: str, out: Path) -> None:
-    section.add("note", f"{what}: not run in this study.", level="missing", command=_command(key, out))
+def _missing(section: Section, what: str, key: str, inp: Inputs) -> None:
+    section.add("note", f"{what}: not run in this study.", level="missing", command=_command(key, inp))
+
+
+def _render_blocks(inp: Inputs, sec: Section, names_captions, key: str = "renders") -> None:
+    """One image per (render name, caption) of OUT/data/renders; a note where a render is unavailable (its
+    reason) or missing (the command of input `key`)."""
+    for name, caption in names_captions:
+        png, reason = inp.render(name)
+        if png is not None:
+            sec.add("image", plots.png_file_uri(png), caption=caption, source=png)
+        elif reason is not None:
+            sec.add("note", f"{name}: render unavailable: {reason}", level="warn", command=_command(key, inp))
+        else:
+            _missing(sec, f"render {name}.png", key, inp)
 
 
 HIDDEN_COLUMNS = ("run_dir",)

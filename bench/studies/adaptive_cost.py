@@ -100,6 +100,7 @@ def adaptive_cost_command(
 
 
 register(Study("adaptive-cost", order=70, outputs=("adaptive_cost.csv",), sections=("phases",),
+               produces={"adaptive_cost": "cloudpbf adaptive-cost --spacing 45 --out {out}/data/adaptive_cost.csv"},
                command=adaptive_cost_command))
 
 

@@ -23,6 +23,8 @@ from typing import Annotated
 import pandas as pd
 import typer
 
+from bench.report import plots
+from bench.report.common import Inputs, Section, _missing, _table
 from bench import runs
 from bench.cli_common import DEFAULT_OUT, OutOpt
 from bench.studies.registry import ReportSection, Study, register
@@ -135,7 +137,29 @@ def benchmark_history_command(
     typer.echo(f"wrote {target}")
 
 
+# ---- report: the solver's step across commits ----------------------------------------------------
+def _benchmark_history(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, path = inp.csv("benchmark_history")
+    if df is None:
+        _missing(sec, "benchmark_history.csv (the solver's step across commits, from the asv results in "
+                      "benchmarks/results)", "benchmark_history", inp)
+        return
+    sec.add("text", "Each point is one commit's median of asv samples (docs/benchmarks.md), error bars its 99% "
+                    "interval. A change is flagged when the ratio to the machine's previous recorded commit passes "
+                    "the history's factor and the two intervals do not overlap.")
+    for machine in sorted(df["machine"].unique()):
+        sec.add("image", plots.benchmark_history_plot(df, machine), caption=f"{machine}, from {path.name}")
+    changed = df[df["change"].fillna("") != ""]
+    if len(changed):
+        shown = changed[["machine", "commit", "backend", "scene", "particles", "time_ms", "ratio", "change"]].rename(
+            columns={"time_ms": "ms per step", "ratio": "ratio to the previous commit"})
+        sec.add("table", _table(shown, float_format="{:.3g}"), caption="changes between consecutive recorded commits")
+    else:
+        sec.add("note", "no change beyond the factor between consecutive recorded commits", level="ok")
+
+
 register(Study("benchmark-history", order=95, run=lambda ctx, scene: run_history(ctx), outputs=(OUTPUT,),
                command=benchmark_history_command,
-               report=(ReportSection("benchmark_history", "Benchmark history (asv)",
-                                     "bench.report.build:_benchmark_history", 35),)))
+               report=(ReportSection("benchmark_history", "Benchmark history (asv)", _benchmark_history, 35,
+                                     "History"),),
+               produces={"benchmark_history": "cloudpbf benchmark-history --out {out}"}))

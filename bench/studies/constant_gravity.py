@@ -97,6 +97,7 @@ def constant_gravity_command(
 
 
 register(Study("constant-gravity", order=80, outputs=("constant_gravity.csv",), sections=("stress",),
+               produces={"constant_gravity": "cloudpbf constant-gravity --out {out}/data/constant_gravity.csv"},
                command=constant_gravity_command))
 
 

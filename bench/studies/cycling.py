@@ -33,7 +33,7 @@ import typer
 
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
-                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
+                              ScaleOpt, SchedulerOpt, WorkersOpt, refusals, run_command, study_context)
 from bench.studies.registry import Study, register
 from bench.statistics import grid_for_scene
 from bench.studies.compare import SOLVER_OF_MODE, scene_pair
@@ -334,8 +334,7 @@ register(Study("cycling", order=35, sections=("compare",),
 
 def main(argv=None) -> int:
     """``python -m bench.studies.cycling ARGS`` is ``cloudpbf cycling ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["cycling", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(cycling_command, "cycling", argv)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from pathlib import Path
 from bench import runs
 from bench import environment
 from bench.studies.context import StudyContext
+from bench.studies.page import build_report
 from bench.studies.registry import demo_studies
 
 
@@ -22,12 +23,6 @@ from bench.studies.registry import demo_studies
 def study_names() -> tuple[str, ...]:
     """The demo's studies, in order."""
     return tuple(s.name for s in demo_studies())
-
-
-def build_report(out: Path) -> Path:
-    """bench.report.build.build_report(out) -> the path of index.html."""
-    from bench.report.build import build_report as build
-    return Path(build(out))
 
 
 def run_demo(ctx: StudyContext, scene_name: str = "growing",

@@ -29,6 +29,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from bench.report.common import Inputs, Section, _missing, _table
 from bench.cli_common import run_command
 from bench.studies.registry import ReportSection, Study, register
 
@@ -190,8 +191,26 @@ def peers_command(
     typer.echo(f"wrote {out}")
 
 
+# ---- report: against SPlisHSPlasH ----------------------------------------------------------------
+def _peers(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, path = inp.csv("cpu_peer")
+    if df is None:
+        _missing(sec, "cpu_peer.csv (SPlisHSPlasH's PBF dam break against cloudpbf's: cloudpbf peers)", "peers", inp)
+        return
+    sec.add("text", "SPlisHSPlasH's DamBreakModel with PBF (4 iterations, dt 0.002 s) and cloudpbf's dam break on the "
+                    "same box, water cube and spacing, timed alternately in one run; per run the faster repeat of each "
+                    "and cloudpbf's ratio to SPlisHSPlasH of the faster repeats and of the means. A shared host's "
+                    "speed drifts between runs: compare within a row. Fluid particle-steps per second: more is "
+                    "faster.")
+    wide = best_rates(df)
+    wide["threads"] = wide["threads"].map(lambda t: "GPU" if int(t) == 0 else str(int(t)))
+    commits = ", ".join(sorted(df["commit"].astype(str).unique()))
+    sec.add("table", _table(wide, float_format="{:.3g}"), caption=f"from {path.name}, commit {commits}")
+
+
 register(Study("peers", order=96, outputs=("cpu_peer.csv",), command=peers_command,
-               report=(ReportSection("peers", "Against SPlisHSPlasH (CPU)", "bench.report.build:_peers", 36),)))
+               report=(ReportSection("peers", "Against SPlisHSPlasH (CPU)", _peers, 36, "SPlisHSPlasH"),),
+               produces={"peers": "cloudpbf peers --out {out}/data/cpu_peer.csv"}))
 
 
 def main(argv=None) -> int:

@@ -1,41 +1,26 @@
 """The studies, each declared once, in its own file.
 
-A study module ends with ``register(Study(...))``: its name (the demo's and the CLI's), its place in
-the demo, how it runs there, the report sections it feeds, and its sizes at every scale (fields of
-:class:`bench.studies.scales.Scale`).  The demo, the scale table, the CLI and the report find the
-studies here: :func:`studies` imports every module of ``bench.studies`` once and returns what they
-registered, in demo order.  Adding a study is adding its file.
+A study module (or the ``__init__.py`` of a study's folder) ends with ``register(Study(...))``: its name
+(the demo's and the CLI's), its place in the demo, how it runs there, its command, its report sections and
+verdict cards, the commands that produce its data, and its sizes at every scale (fields of
+:class:`bench.studies.scales.Scale`).  The demo, the scale table, the CLI and the report find the studies
+here: :func:`studies` imports every module of the packages in :data:`PACKAGES` once and returns what they
+registered, in demo order.  Adding a study is adding its file; removing the file removes it everywhere.
 """
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-__all__ = ["Study", "ReportSection", "register", "studies", "study", "demo_studies", "report_sections"]
+from bench.report.catalogue import GlanceCard, ReportSection
+
+__all__ = ["Study", "ReportSection", "GlanceCard", "register", "studies", "study", "demo_studies",
+           "report_sections", "PACKAGES"]
 
 SCALE_NAMES = ("smoke", "cpu", "gpu")
-
-
-@dataclass(frozen=True)
-class ReportSection:
-    """A section of the HTML report that a study owns.
-
-    id: the anchor in the page (other studies name it in their `sections` to feed it)
-    title: its heading
-    builder: "module:function" of builder(inputs, section, env), imported only when the report is built
-      (so the CLI does not import matplotlib); the report's builders live in bench.report.build
-    order: its place in the page (the report's own sections: environment 0, summary 5)
-    """
-    id: str
-    title: str
-    builder: str
-    order: int
-
-    def load(self) -> Callable:
-        module, _, name = self.builder.partition(":")
-        return getattr(importlib.import_module(module), name)
 
 
 @dataclass(frozen=True)
@@ -45,12 +30,15 @@ class Study:
     name: its name in `cloudpbf demo --only` (and its CLI command when it has one)
     order: its place in the demo (timing studies first: nothing else competes for the device)
     run: run(ctx, scene) for the demo (scene: the cloud scene of the demo); None: not in the demo
-    sections: ids of the report sections its outputs feed (their builders are the report's)
+    sections: ids of the report sections its outputs feed (whatever study owns them)
     outputs: the files it writes under OUT/data
     scale: {field: {"smoke": v, "cpu": v, "gpu": v}}: its sizes, fields of every Scale
     command: a typer command function (the CLI registers it under `name`), or None
-    report: the report sections this study owns (ReportSection: id, title, builder, order); the report
-      shows them in order, whatever study feeds them
+    report: the report sections this study owns (bench.report.catalogue.ReportSection: id, title, builder,
+      order, short title); the report shows them in order, whatever study feeds them
+    glance: its verdict cards on the report's first screen (bench.report.catalogue.GlanceCard)
+    produces: input key -> the command that produces it (``{out}``: the output folder), shown in the report
+      where that input is missing
     """
     name: str
     order: int
@@ -60,6 +48,8 @@ class Study:
     scale: dict = field(default_factory=dict)
     command: Callable | None = None
     report: tuple = ()
+    glance: tuple = ()
+    produces: dict = field(default_factory=dict)
 
     def __post_init__(self):
         for name, values in self.scale.items():
@@ -69,7 +59,7 @@ class Study:
 
 
 _REGISTRY: dict[str, Study] = {}
-_DISCOVERED = False
+_DISCOVERED: set[str] = set()
 
 
 def register(study: Study) -> Study:
@@ -81,14 +71,19 @@ def register(study: Study) -> Study:
     return study
 
 
+PACKAGES = ["bench.studies", *(n.strip() for n in os.environ.get("CLOUDPBF_STUDIES", "").split(",") if n.strip())]
+"""The packages whose modules are studies (each module or sub-package imported once, at discovery): bench.studies,
+then those named, comma-separated, in $CLOUDPBF_STUDIES.  A study kept elsewhere (a plug-in, a test's toy study)
+is found by naming its package there (for the CLI: ``CLOUDPBF_STUDIES=mystudies cloudpbf --help``) or by adding
+it here (the next call of :func:`studies` imports it)."""
+
+
 def _discover() -> None:
-    global _DISCOVERED
-    if _DISCOVERED:
-        return
-    import bench.studies as package
-    for info in pkgutil.iter_modules(package.__path__):
-        importlib.import_module(f"{package.__name__}.{info.name}")   # a module being imported is skipped
-    _DISCOVERED = True
+    for name in [n for n in PACKAGES if n not in _DISCOVERED]:
+        package = importlib.import_module(name)
+        for info in pkgutil.iter_modules(package.__path__):
+            importlib.import_module(f"{package.__name__}.{info.name}")   # a module being imported is skipped
+        _DISCOVERED.add(name)
 
 
 def studies() -> tuple[Study, ...]:

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from bench.report import plots
+from bench.report.common import Inputs, Section, _command, _missing, _render_blocks
 from bench import render, runs, statistics
 from bench.studies.compare import compare_specs
 from bench.studies.context import StudyContext
@@ -107,10 +109,49 @@ def run_renders(ctx: StudyContext, scene_name: str = "growing") -> dict[str, Pat
     return done
 
 
+# ---- report: renders, Figures 1 and 3 ------------------------------------------------------------
+def _renders(inp: Inputs, sec: Section, env: dict | None) -> None:
+    _render_blocks(inp, sec, [
+        ("clouds_particles", "particles with w > 1e-5 kg/kg, opacity rising with cloud density (clear air transparent)"),
+        ("clouds_volume", "volume render of the particles' cloud field deposited on the statistics grid"),
+    ])
+    gif, reason = inp.render("clouds_animation", ".gif")
+    if gif is not None:
+        sec.add("image", plots.file_uri(gif, "image/gif"), source=gif, caption=(
+            "The clouds developing: every stored state of the non-adaptive seed-0 compare run, looping "
+            "(particles with w > 1e-5 kg/kg)."))
+        _render_blocks(inp, sec, [("clouds_strip", "the same states side by side, time increasing to the right")])
+    elif reason is not None:
+        sec.add("note", f"clouds_animation: render unavailable: {reason}", level="warn",
+                command=_command("renders", inp))
+    else:
+        _missing(sec, "the animation of the clouds developing (renders/clouds_animation.gif)", "renders", inp)
+
+
+def _figure1(inp: Inputs, sec: Section, env: dict | None) -> None:
+    combined, _ = inp.render("figure1")
+    if combined is not None:
+        _render_blocks(inp, sec, [("figure1", "smoothing_slab scene seen from the front: (a) kappa = 0, (b) smoothed")])
+        return
+    _render_blocks(inp, sec, [
+        ("figure1_unsmoothed", "(a) smoothing_slab without temperature smoothing (kappa = 0): particles turn to "
+                               "cloud in isolation, no coherent shape"),
+        ("figure1_smoothed", "(b) the same with temperature smoothing (eq. 12-17, kappa = 0.1)"),
+    ])
+
+
+def _figure3(inp: Inputs, sec: Section, env: dict | None) -> None:
+    _render_blocks(inp, sec, [
+        ("figure3_shape_energy", "shape energy E = k_p (1 - exp(-k_c w)) (eq. 20) of an adaptive run beside the "
+                                 "cloud density w: E marks thin cloud edges as split candidates where w alone is small"),
+    ])
+
+
 register(Study("renders", order=60, run=lambda ctx, scene: run_renders(ctx, scene),
                 sections=("renders", "figure1", "figure3"),
-                report=(ReportSection("renders", "Cloud renders", "bench.report.build:_renders", 90),
-                        ReportSection("figure1", "Figure 1: temperature smoothing", "bench.report.build:_figure1", 100),
-                        ReportSection("figure3", "Figure 3: shape energy", "bench.report.build:_figure3", 110),),
+                report=(ReportSection("renders", "Cloud renders", _renders, 90, "Renders"),
+                        ReportSection("figure1", "Figure 1: temperature smoothing", _figure1, 100, "Fig. 1"),
+                        ReportSection("figure3", "Figure 3: shape energy", _figure3, 110, "Fig. 3"),),
+                produces={"renders": "cloudpbf demo --out {out}"},
                 outputs=tuple(f"renders/{name}" for name in RENDERS),
                 scale={"slab_particles": {"smoke": 2000, "cpu": 25_000, "gpu": None}}))     # Figure 1 slab

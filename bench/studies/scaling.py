@@ -25,6 +25,8 @@ from typing import Annotated, Optional
 import pandas as pd
 import typer
 
+from bench.report import plots
+from bench.report.common import Inputs, Section, _missing, _provenance, _table
 from bench import environment, roofline, runs
 from bench.solvers import ParticleAdapter
 from bench.cli_common import (Backend, BackendOpt, DEFAULT_OUT, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
@@ -153,8 +155,28 @@ def pbf_scaling_command(
     typer.echo(f"wrote {out}")
 
 
+# ---- report: step time against size --------------------------------------------------------------
+def _scaling(inp: Inputs, sec: Section, env: dict | None) -> None:
+    frames = []
+    for study, solver, unit, plot in (("pbf_scaling", "particle solver", "particle", plots.pbf_scaling_plot),
+                                      ("grid_scaling", "grid baseline", "cell", plots.grid_scaling_plot)):
+        frame, path = inp.csv(study)
+        frames.append(frame)
+        if frame is None:
+            _missing(sec, f"{study}.csv ({solver} step time against {unit} count)", study, inp)
+            continue
+        name = "PBF" if study == "pbf_scaling" else solver
+        sec.add("image", plot(frame), caption=f"{name} step (log-log) from {path.name}")
+        extra = frame.copy()
+        if "step_ms" in extra and f"{unit}s" in extra:
+            extra[f"ns per {unit}"] = 1e6 * extra["step_ms"] / extra[f"{unit}s"]
+        sec.add("table", _table(extra))
+    sec.provenance = _provenance(*frames, env=env)
+
+
 register(Study("scaling", order=20, run=lambda ctx, scene: run_scaling(ctx), sections=("scaling",),
-                report=(ReportSection("scaling", "Scaling", "bench.report.build:_scaling", 30),),
+                report=(ReportSection("scaling", "Scaling", _scaling, 30),),
+                produces={"grid_scaling": "cloudpbf grid-scaling --sizes 32,64,128 --out {out}/data/grid_scaling.csv"},
                 outputs=("pbf_scaling.csv", "grid_scaling.csv"),
                 scale={"scaling_particles": {"smoke": (2000, 8000), "cpu": (10_000, 50_000, 250_000),
                                              "gpu": (250_000, 1_000_000, 4_000_000)},
@@ -162,4 +184,5 @@ register(Study("scaling", order=20, run=lambda ctx, scene: run_scaling(ctx), sec
                        "timing_steps": {"smoke": 5, "cpu": 10, "gpu": 20}},    # timed steps after 2 warm-up steps
                 command=scaling_command))
 register(Study("pbf-scaling", order=75, outputs=("pbf_scaling.csv",), sections=("scaling",),
+               produces={"pbf_scaling": "cloudpbf scaling --out {out}"},
                command=pbf_scaling_command))

@@ -28,9 +28,11 @@ import numpy as np
 import pandas as pd
 import typer
 
+from bench.report import plots
+from bench.report.common import Inputs, Section, _missing, _provenance, _render_blocks, _table
 from bench import render, runs, statistics
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleOpt,
-                              ScaleName, SchedulerOpt, WorkersOpt, study_context)
+                              ScaleName, SchedulerOpt, WorkersOpt, run_command, study_context)
 from bench.statistics import CLOUDY_COVER, cloudy_period_means
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
@@ -240,10 +242,60 @@ def shallow_cumulus_command(
                "shallow_cumulus_les.csv, renders/shallow_cumulus_*.png")
 
 
+# ---- report: the cumulus under its inversion -----------------------------------------------------
+def _shallow_cumulus(inp: Inputs, sec: Section, env: dict | None) -> None:
+    """The shallow_cumulus study (bench.studies.shallow_cumulus): statistics beside the LES cases, renders."""
+    summary, path = inp.csv("shallow_cumulus")
+    if summary is None:
+        _missing(sec, "the shallow-cumulus study (shallow_cumulus.csv)", "shallow_cumulus", inp)
+        return
+    sec.add("text", "growing under a capping inversion (scene shallow_cumulus, docs/validation.md "
+                    "\"Shallow cumulus\"): per seed, statistics over the last half of the run. "
+            + _provenance(summary, env=env))
+    cols = {"seed": "seed", "particles": "particles", "cover_mean": "cover (mean)", "cover_max": "cover (max)",
+            "in_shallow_range": "snapshots in 0.1-0.4", "cf_peak": "cloud-fraction peak",
+            "z_cf_peak_m": "peak height (m)", "cover_to_peak": "cover / peak", "cloud_base_m": "base (m)",
+            "cloud_top_m": "top (m)", "lwp_g_m2": "LWP (g/m²)", "clouds_end": "clouds at the end"}
+    shown = summary[[c for c in cols if c in summary.columns]].rename(columns=cols)
+    sec.add("table", _table(shown), caption=f"{path.name}: one row per seed and their mean.")
+    les, lpath = inp.csv("shallow_cumulus_les")
+    if les is not None:
+        keep = ["case", "metric", "lo", "hi", "scene_mean", "scene_seed_min", "scene_seed_max", "inside", "note",
+                "source"]
+        sec.add("table", _table(les[[c for c in keep if c in les.columns]]), caption=(
+            f"{lpath.name}: the published cases' numbers (from the papers' text) beside the scene's seed mean "
+            "and seed range; inside: the mean lies in the case's range."))
+    grid, gpath = inp.csv("shallow_cumulus_grid")
+    if grid is not None:
+        seeds = [str(x) for x in grid["seed"] if str(x) != "mean"]
+        particles = summary[summary["seed"].astype(str).isin(seeds)]
+        keep = [c for c in cols if c not in ("seed", "particles") and c in grid.columns and c in particles.columns]
+        rows = [{"solver": f"particles (seeds {', '.join(seeds)})", **particles[keep].mean(numeric_only=True)},
+                {"solver": f"grid, {int(grid['cells'].iloc[0])}³ cells (seeds {', '.join(seeds)})",
+                 **grid[grid["seed"].astype(str) != "mean"][keep].mean(numeric_only=True)}]
+        sec.add("table", _table(pd.DataFrame(rows).rename(columns=cols)), caption=(
+            f"The grid baseline on the same scene and seeds ({gpath.name}, cloudpbf run shallow_cumulus --solver grid, "
+            f"{_provenance(grid)}), analysed as the particle runs are: seed means."))
+    series, _ = inp.csv("shallow_cumulus_series")
+    profile, _ = inp.csv("shallow_cumulus_profile")
+    if series is not None and profile is not None:
+        covers = les[les["metric"] == "cover_mean"] if les is not None else pd.DataFrame()
+        bands = [(str(r.case), float(r.lo), float(r.hi)) for r in covers.itertuples()]
+        sec.add("image", plots.shallow_cumulus_plot(series, profile, bands),
+                caption="Cover against time (shaded: the LES cases' cover ranges) and the time-mean cloud-fraction "
+                        "profile.")
+    _render_blocks(inp, sec, [
+        ("shallow_cumulus_volume", "seed 0 at the end: the cloud water deposited on the analysis grid, volume "
+                                   "rendered"),
+        ("shallow_cumulus_particles", "the same state as particles with w > 1e-5 kg/kg, opacity rising with w"),
+    ])
+
+
 register(Study("shallow-cumulus", order=37, run=lambda ctx, scene: run_shallow_cumulus(ctx),
                sections=("shallow_cumulus",),
-               report=(ReportSection("shallow_cumulus", "Shallow cumulus under an inversion",
-                                     "bench.report.build:_shallow_cumulus", 57),),
+               report=(ReportSection("shallow_cumulus", "Shallow cumulus under an inversion", _shallow_cumulus, 57,
+                                     "Cumulus"),),
+               produces={"shallow_cumulus": "cloudpbf shallow-cumulus --out {out}"},
                outputs=("shallow_cumulus.csv", "shallow_cumulus_series.csv", "shallow_cumulus_profile.csv",
                         "shallow_cumulus_les.csv", STATE_FILE, "renders/shallow_cumulus_volume.png",
                         "renders/shallow_cumulus_particles.png"),
@@ -253,8 +305,7 @@ register(Study("shallow-cumulus", order=37, run=lambda ctx, scene: run_shallow_c
 
 def main(argv=None) -> int:
     """``python -m bench.studies.shallow_cumulus ARGS`` is ``cloudpbf shallow-cumulus ARGS``."""
-    from bench.cli import main as cli_main
-    return cli_main(["shallow-cumulus", *(sys.argv[1:] if argv is None else argv)])
+    return run_command(shallow_cumulus_command, "shallow-cumulus", argv)
 
 
 if __name__ == "__main__":

@@ -39,9 +39,15 @@ the usable bound in words).
 """
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import typer
 
+from bench.report import glance_plots as gp
+from bench.report import plots
+from bench.report.catalogue import GlanceCard
+from bench.report.common import Inputs, Section, _command, _missing, _provenance, _table
+from bench.report.glance import Card, data_link, missing_card, section_link
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
@@ -284,8 +290,149 @@ def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
     typer.echo(f"wrote {ctx.data / 'stress.csv'}")
 
 
+# ---- report: the stability map, the verdict card -------------------------------------------------
+STRESS_LABELS = {   # stress.csv column -> table header (bench.studies.stress writes the columns)
+    "value": "value (dt in s, heating in K/s)", "step": "last step", "particles": "unstable particle ids",
+    "max_speed": "max speed (m/s)", "density_error_mean": "density error, last step",
+    "density_error_max": "density error, worst step", "energy_jump": "kinetic energy jump (x per step)",
+    "dt": "dt (s)", "iterations": "PBF iterations", "heating_rate": "heating S_e (K/s)",
+    "phase_rate": "phase rate α (1/s)", "alpha_dt": "α dt", "n_particles": "particles (max)",
+    "last_good_step": "last good step", "reference_error": "error vs converged reference",
+    "reference_dt": "reference dt (s)", "reference_iterations": "reference iterations",
+    "reference_reason": "no reference error because"}
+"""Density errors are the per-step mean of |rho/rho0 - 1| (a fraction, eq. 1)."""
+
+
+GRAVITY_LABELS = {   # constant_gravity.csv column -> table header
+    "constant_gravity": "g_c (m/s²)", "cloud_gravity": "cloud gravity (m/s²)", "first_cloud_s": "first cloud (s)",
+    "max_cover": "max cloud cover (fraction)", "final_cover": "final cloud cover (fraction)",
+    "vanished_and_returned": "vanished and returned", "density_error_mean": "density error, last step",
+    "max_speed": "max speed (m/s)"}
+
+
+def _stress(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, _ = inp.csv("stress")
+    if df is None:
+        _missing(sec, "stress.csv (stability sweep)", "stress", inp)
+        return
+    df = stress_frame(df)
+    checked = "reference_error" in df.columns
+    bound = (usable_bound(df) if checked
+             else "not determined: this stress.csv has no error against a converged reference")
+    if not checked:
+        sec.add("note", "This stress.csv predates the converged-reference check: no case is shown as usable (a stable "
+                        "run can still have lost the scene, e.g. a fluid collapsed onto the floor). Rerun the stress "
+                        "study for the usable region.", level="warn", command=_command("stress", inp))
+    energy = ENERGY_JUMP_LIMIT if "energy_jump" in df.columns else None
+    if df["parameter"].astype(str).str.startswith("dt x ").any():
+        sec.add("image", plots.stability_map_2d(df, bound, energy), caption=(
+            "Two-parameter maps: every cell one run of the stress scene. Colour: the largest per-step mean density "
+            f"error (eq. 1); black line: the usable region's boundary (usable: {bound})."))
+    else:
+        sec.add("note", "no 2-D map in this stress.csv (made by an older version of the stress study); "
+                        "rerun it for the dt x iterations and dt x heating-rate maps.", level="missing",
+                command=_command("stress", inp))
+    sec.add("image", plots.stability_map(df, "stable, not usable" if checked else "stable (usable not checked)"),
+            caption=(
+        f"One parameter at a time. Green: usable ({bound}); orange: ran to the end but not usable"
+        + ("" if checked else " or not checked") + "; red: stopped as unstable (reason shown)."))
+    limit = stress_limits(df)
+    if limit:
+        sec.add("text", limit)
+    bad = df[~df["stable"]]
+    numeric = [c for c in ("max_speed", "density_error_mean") if c in df.columns]
+    finite = df[df["stable"]][numeric].apply(pd.to_numeric, errors="coerce")
+    if numeric and not np.isfinite(finite.to_numpy(dtype=float)).all():
+        sec.add("note", "a run marked stable has non-finite statistics: check stress.csv", level="error")
+    sec.add("text", f"{len(df)} runs, {int(df['stable'].sum())} stable, {len(bad)} unstable.")
+    sec.add("table", _table(df.drop(columns=[c for c in ("device", "commit") if c in df.columns]),
+                            labels=STRESS_LABELS),
+            caption="all cases (an unstable run is stopped at the step the check caught it; its NaN never "
+                    "enters the statistics; density error: the mean of |rho/rho0 - 1| over the particles)")
+    gravity, gravity_path = inp.csv("constant_gravity")
+    if gravity is None:
+        _missing(sec, "constant_gravity.csv (paper example 2: a constant gravity on the whole domain)",
+                 "constant_gravity", inp)
+    else:
+        cols = [c for c in ("case", "constant_gravity", "cloud_gravity", "particles", "stable", "reason",
+                            "first_cloud_s", "max_cover", "final_cover", "vanished_and_returned",
+                            "density_error_mean", "max_speed") if c in gravity.columns]
+        sec.add("table", _table(gravity[cols], labels=GRAVITY_LABELS), caption=(
+            f"A constant gravity g_c (m/s^2) added to every particle of the growing scene, beside the shipped "
+            f"cycling scene, from {gravity_path.name}: cloud cover (fraction of columns) and the last step's "
+            "density error and largest speed (m/s)."))
+    sec.provenance = _provenance(df, env=env)
+
+
+def stress_frame(df: pd.DataFrame) -> pd.DataFrame:
+    """stress.csv with ``stable`` and ``usable`` as booleans: usable only where the row is stable and the case was
+    checked against a converged reference (bench.studies.stress.usable_mask where the CSV has no usable column);
+    a row marked unstable is never usable, whatever the CSV says."""
+    df = df.copy()
+    df["stable"] = df["stable"].map(plots._truthy)
+    if "reference_error" not in df.columns:
+        df["usable"] = False
+    elif "usable" in df.columns:
+        df["usable"] = df["usable"].map(plots._truthy)
+    else:
+        df["usable"] = usable_mask(df)
+    df["usable"] = df["usable"] & df["stable"]
+    return df
+
+
+def usable_bound(df: pd.DataFrame) -> str:
+    """What usable means in this stress.csv: the bound's text with the reference's dt divisor and iterations
+    read from the rows (reference_dt, reference_iterations)."""
+    dt, ref_dt = (pd.to_numeric(df.get(c), errors="coerce") for c in ("dt", "reference_dt"))
+    iterations = pd.to_numeric(df.get("reference_iterations"), errors="coerce").dropna()
+    ratio = (dt / ref_dt).dropna()
+    if not len(ratio) or not len(iterations):
+        return usable_bound_text()
+    return usable_bound_text(round(float(ratio.median()), 3), int(iterations.iloc[0]))
+
+
+def stress_limits(df: pd.DataFrame) -> str:
+    """'Largest usable dt (bound): ... s; largest stable dt: ... s.' from the 1-D dt cases of a stress_frame."""
+    dt = stress_frame(df[df["parameter"] == "dt"]) if "dt" in set(df["parameter"]) else df.iloc[:0]
+    if not len(dt):
+        return ""
+    dt["value"] = pd.to_numeric(dt["value"], errors="coerce")
+    found = largest_stable_dt(dt)
+    usable, stable = found["largest_usable_dt"], found["largest_stable_dt"]
+    if "reference_error" in df.columns:
+        text = ("Largest usable dt: " + (f"{usable:g} s" if usable is not None else "none of the tried dt")
+                + f" (usable: {usable_bound(df)}); ")
+    else:
+        text = "Largest usable dt: not determined (no converged-reference check in this data); "
+    text += (f"largest stable dt (no blow-up, accuracy aside): {stable:g} s" if stable is not None
+             else "no tried dt was stable")
+    if found["smallest_unstable_dt"] is not None:
+        text += f"; smallest unstable dt: {found['smallest_unstable_dt']:g} s"
+    return text + "."
+
+
+def stability_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    card = Card("stress", "Stability map")
+    df, _ = inp.csv("stress")
+    if df is None:
+        return missing_card(card, inp, "no stress.csv", "stress")
+    df = stress_frame(df)
+    card.answer = stress_limits(df)
+    if "reference_error" not in df.columns:
+        card.level = "warn"
+    dt = df[df["parameter"] == "dt"].sort_values("value")
+    if len(dt):
+        states = ["usable" if u else "stable" if s else "unstable" for u, s in zip(dt["usable"], dt["stable"])]
+        card.figure = gp.strip(pd.to_numeric(dt["value"], errors="coerce"), states,
+                               stable_label="stable, not usable" if "reference_error" in df.columns
+                               else "stable (usable not checked)")
+    card.links = section_link("stress", titles) + data_link(inp, "stress.csv", "stress_summary.json")
+    return card
+
+
 register(Study("stress", order=50, run=lambda ctx, scene: run_stress(ctx), sections=("stress",),
-               report=(ReportSection("stress", "Stability map", "bench.report.build:_stress", 80),),
+               report=(ReportSection("stress", "Stability map", _stress, 80, "Stability"),),
+               glance=(GlanceCard(stability_card, 40),), produces={"stress": "cloudpbf stress --out {out}"},
                outputs=("stress.csv", "stress_summary.json"),
                scale={"stress_particles": {"smoke": 2000, "cpu": 10_000, "gpu": 100_000},
                       "stress_steps": {"smoke": 30, "cpu": 100, "gpu": 200},

@@ -24,12 +24,19 @@ interval holds 1 or a single comparison leaves none: ``speedup_summary``).
 """
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pandas as pd
 import typer
 
+from bench.pareto import pareto_front
+from bench.report import glance_plots as gp
+from bench.report import plots
+from bench.report.catalogue import GlanceCard
+from bench.report.common import Inputs, Section, _command, _missing, _provenance, _table
+from bench.report.glance import Card, data_link, section_link
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
@@ -238,8 +245,117 @@ def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scal
     typer.echo(f"wrote {ctx.data / 'sweep.csv'}")
 
 
+# ---- report: run time against error, the verdict card --------------------------------------------
+SWEEP_HIDDEN = ("device", "commit", "run_dir")
+
+
+SWEEP_LABELS = {   # sweep.csv column -> table header (bench.studies.sweep writes the columns)
+    "value": "value (spacings in m)", "wall_s": "wall time (s)",
+    "error_self": "error vs own finest run", "error_other": "error vs other method's finest run",
+    "error_cover_self": "cover error vs own finest", "error_profile_self": "profile error vs own finest",
+    "error_cover_other": "cover error vs other's finest", "error_profile_other": "profile error vs other's finest",
+    "particles": "particles (max)", "initial_particles": "particles (initial)", "cells": "grid cells",
+    "spacing_m": "spacing (m)", "iterations": "PBF iterations", "resolution_m": "resolution (m)",
+    "cloud_base_mean": "cloud base (m)", "cloud_top_mean": "cloud top (m)", "cover_mean": "cloud cover (fraction)",
+    "lwp_mean": "LWP (kg/m²)", "split_threshold": "split threshold α", "reference": "reference run",
+    "pareto": "on Pareto front"}
+"""Errors are relative L2 differences of the cover series and the cloud-fraction profile (dimensionless);
+cover, LWP, base and top are time means over the run's cloudy snapshots (cover > 1%)."""
+
+
+def _sweep(inp: Inputs, sec: Section, env: dict | None) -> None:
+    df, _ = inp.csv("sweep")
+    if df is None:
+        _missing(sec, "sweep.csv (run time against error)", "sweep", inp)
+        return
+    df = df.copy()
+    reference = (df["reference"].map(plots._truthy) if "reference" in df.columns
+                 else pd.to_numeric(df["error_self"], errors="coerce") <= 0)
+    sec.add("image", plots.pareto_plot(df, reference=reference), caption=(
+        "Each point one run; error = difference of the cloud statistics from the finest run of the same method "
+        "(left) and of the other method (right); lines: Pareto fronts per method and mode (no run on a front is "
+        "beaten in both wall time and error by another of its group)."))
+    keys = [k for k in ("method", "mode") if k in df.columns]
+    measured = df[~reference & df["error_self"].notna() & df["wall_s"].notna()]
+    fronts = [pareto_front(g, "wall_s", "error_self") for _, g in measured.groupby(keys, sort=True)]
+    cols = [c for c in ("method", "mode", "parameter", "value", "particles", "cells", "wall_s", "error_self",
+                        "error_other") if c in df.columns]
+    if fronts:
+        sec.add("table", _table(pd.concat(fronts)[cols], labels=SWEEP_LABELS), caption=(
+            "runs on the Pareto front of each method / mode (wall time against the error vs the own finest run; "
+            "the reference runs excluded)"))
+    verdict = _study_verdict(inp)
+    if verdict:
+        sec.add("text", "Adaptive against non-adaptive at equal error: " + verdict + ".")
+    else:
+        sec.add("note", "no adaptive verdict recorded (sweep_verdict.json): rerun the sweep.", level="missing",
+                command=_command("sweep", inp))
+    convergence = plots.convergence_plot(df)
+    if convergence is not None:
+        sec.add("image", convergence, caption=(
+            "Convergence: each solver's cloud statistics (time means over the run's cloudy period, cover > 1%) "
+            "against its resolution, particle spacing or grid cell size (finer to the right); where the two "
+            "lines approach each other as they refine, the solvers converge toward one answer."))
+    if "stable" in df.columns:
+        unstable = df[~df["stable"].map(plots._truthy)]
+        if len(unstable):
+            sec.add("note", f"{len(unstable)} sweep run(s) went unstable and have no wall time or error: "
+                    + "; ".join(f"{r.method} {r.parameter} = {r.value}: {getattr(r, 'reason', '')}"
+                                for r in unstable.itertuples()), level="warn")
+    sec.add("table", _table(df.drop(columns=[c for c in SWEEP_HIDDEN if c in df.columns]), labels=SWEEP_LABELS),
+            caption="all runs (errors: relative L2 of the cover series and the cloud-fraction profile; cloud cover, "
+                    "LWP, base and top: time means over the run's cloudy snapshots)")
+    sec.provenance = _provenance(df, env=env)
+
+
+def _study_verdict(inp: Inputs) -> str:
+    """The sweep study's verdict (OUT/data/sweep_verdict.json) by the interval rule of bench.studies.sweep
+    (speedup_summary); '' where the study wrote none."""
+    path = inp.data / "sweep_verdict.json"
+    if not path.is_file():
+        return ""
+    data = json.loads(path.read_text())
+    text, _ = sweep_verdict(data)
+    if text and data.get("metric"):
+        text += f" (metric: {data['metric']}; each run one seed, wall time inside step())"
+    return text
+
+
+def sweep_verdict(v: dict) -> tuple[str, bool]:
+    """(the sweep verdict's text, no difference measured) from sweep_verdict.json, its interval recomputed from the
+    comparisons so that a verdict written before the interval existed is read by the same rule."""
+    comps = v.get("comparisons") or []
+    if not comps:
+        return str(v.get("verdict", "no verdict")), True
+    summary = speedup_summary([c["speedup"] for c in comps])
+    errs = [c["error"] for c in comps]
+    return f"{summary['verdict']}; at errors {min(errs):.3g}-{max(errs):.3g}", summary["no_difference"]
+
+
+def sweep_front_card(inp: Inputs, env: dict | None, titles: dict) -> Card | None:
+    """The adaptive front from the sweep's verdict (sweep_verdict.json): it stands in for the adaptive-pareto
+    study's card where that study did not run; None where the sweep did not run either."""
+    path = inp.data / "sweep_verdict.json"
+    if not path.is_file():
+        return None
+    card = Card("adaptive_front", "The adaptive front: speed-up at equal error")
+    v = json.loads(path.read_text())
+    text, none = sweep_verdict(v)
+    card.answer = f"Sweep (one seed per run): {text}."
+    card.detail = f"Error: {v.get('metric', 'against the finest run')}; wall time inside step()."
+    card.level = "warn" if none else "ok"
+    card.links = section_link("sweep", titles) + data_link(inp, "sweep_verdict.json", "sweep.csv")
+    fixed, adapt = pd.DataFrame(v.get("non_adaptive") or []), pd.DataFrame(v.get("adaptive") or [])
+    if len(fixed) and len(adapt):
+        card.figure = gp.front(fixed["wall_s"], fixed["error_self"], adapt["wall_s"], adapt["error_self"],
+                               xlabel="wall time in step() (s)", uniform_label="non-adaptive")
+    return card
+
+
 register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), sections=("sweep",),
-                report=(ReportSection("sweep", "Run time against error", "bench.report.build:_sweep", 60),),
+                report=(ReportSection("sweep", "Run time against error", _sweep, 60, "Time vs error"),),
+                glance=(GlanceCard(sweep_front_card, 21, slot="adaptive_front"),),
+                produces={"sweep": "cloudpbf sweep --out {out}"},
                 outputs=("sweep.csv", "sweep_verdict.json"),
                 scale={  # spacing sweep coarse to fine (the finest is the reference); iterations and the split
                        # threshold alpha at the middle spacing; grid cells along the longest axis

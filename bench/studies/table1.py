@@ -27,12 +27,20 @@ variant's name (empty on the paper's rows) and its paper columns are those of th
 """
 from __future__ import annotations
 
+import math
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import typer
 
+from bench.report import glance_plots as gp
+from bench.report import plots
+from bench.report.catalogue import GlanceCard
+from bench.report.common import (Inputs, Section, _command, _measured_total, _missing, _paper_table, _provenance,
+                                 _scale_of, _table, _variant)
+from bench.report.glance import Card, data_link, missing_card, section_link
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName, ScaleOpt,
                               refusals, study_context)
@@ -193,7 +201,170 @@ def table1_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
     typer.echo(f"wrote {ctx.data / 'table1.csv'}")
 
 
+# ---- report: Table 1 against the paper, the per-phase cost, the verdict card ---------------------
+PAPER_NEEDS_GPU = ("The comparison with the paper's Table 1 needs the gpu scale (the paper's 500k-930k particles: "
+                   "cloudpbf table1 --scale gpu); at this scale the rows are throughput only.")
+
+
+def step_time_text(row: dict) -> str:
+    """'3.83 ms per step (median over 495 timed steps, 5-95%: 3.71-4.02)' where the row carries the per-step
+    spread (step_ms_median, step_ms_p05, step_ms_p95, timed_steps), else the mean over the timed steps and a
+    plain note that the spread was not recorded."""
+    med, lo, hi = (pd.to_numeric(row.get(k), errors="coerce") for k in ("step_ms_median", "step_ms_p05", "step_ms_p95"))
+    steps = pd.to_numeric(row.get("timed_steps", row.get("steps")), errors="coerce")
+    over = f" over {int(steps)} timed steps" if np.isfinite(steps) else " over the timed steps"
+    if np.isfinite(med) and np.isfinite(lo) and np.isfinite(hi):
+        return f"{med:.3g} ms per step (median{over}, 5-95%: {lo:.3g}-{hi:.3g})"
+    total = pd.to_numeric(row.get("total_ms"), errors="coerce")
+    return f"{total:.3g} ms per step (mean{over}; per-step spread not recorded in this data)"
+
+
+def paper_comparison(measured: pd.DataFrame, env: dict | None) -> pd.DataFrame:
+    """One row per Table 1 row: particle counts (ours, the paper's), ms per step, throughput in particle-steps per
+    second (ours, the paper's), and ``speedup_vs_paper`` (the paper's ms / ours) only where the counts match
+    (gpu scale, within MATCH_TOLERANCE); elsewhere ``throughput_vs_paper`` (gpu scale) or nothing."""
+    measured = measured.copy()
+    measured["total_ms"] = _measured_total(measured)
+    paper = _paper_table().set_index(["example", "mode"])
+    scale = _scale_of(env, measured)
+    rows = []
+    for r in measured.to_dict("records"):
+        key = (r["example"], r["mode"])
+        n = pd.to_numeric(r.get("max_particles"), errors="coerce")
+        t = pd.to_numeric(r.get("total_ms"), errors="coerce")
+        n_p = paper["max_particles"].get(key, math.nan) if "max_particles" in paper else math.nan
+        t_p = paper["total_ms"].get(key, math.nan)
+        p05, p95 = (pd.to_numeric(r.get(k), errors="coerce") for k in ("step_ms_p05", "step_ms_p95"))
+        rate = n * 1e3 / t if t and t > 0 else math.nan
+        rate_p = n_p * 1e3 / t_p if t_p and t_p > 0 else math.nan
+        matched = scale == "gpu" and np.isfinite(n) and np.isfinite(n_p) and abs(n / n_p - 1) <= MATCH_TOLERANCE
+        variant = _variant(r)
+        rows.append({**r, "row": f"{r['example']} {r['mode']}" + (f" ({variant})" if variant else ""),
+                     "variant": variant, "paper_particles": n_p, "paper_ms": t_p, "particle_steps_per_s": rate,
+                     "paper_particle_steps_per_s": rate_p, "counts_match": bool(matched),
+                     "speedup_vs_paper": t_p / t if matched and t > 0 else math.nan,
+                     "speedup_lo": t_p / p95 if matched and p95 > 0 else math.nan,
+                     "speedup_hi": t_p / p05 if matched and p05 > 0 else math.nan,
+                     "throughput_vs_paper": rate / rate_p if scale == "gpu" and not matched and rate_p > 0
+                     else math.nan, "scale": scale})
+    return pd.DataFrame(rows)
+
+
+def _table1(inp: Inputs, sec: Section, env: dict | None) -> None:
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        _missing(sec, "table1.csv", "table1", inp)
+        return
+    rows = paper_comparison(measured, env)
+    scale = rows["scale"].iloc[0]
+    gpu = scale == "gpu"
+    if not gpu:
+        sec.add("note", f"Scale '{scale}': {PAPER_NEEDS_GPU}", level="warn")
+    elif not rows["counts_match"].all():
+        sec.add("note", "Rows whose particle count differs from the paper's by more than "
+                        f"{100 * MATCH_TOLERANCE:g}% ({', '.join(rows.loc[~rows['counts_match'], 'row'])}) are "
+                        "compared by throughput (particle-steps per second), not as a speed-up.", level="info")
+    table = pd.DataFrame({
+        "example": rows["example"], "mode": rows["row"].str.split(" ", n=1).str[1], "particles": rows["max_particles"],
+        "total ms": rows["total_ms"], "particle-steps/s": rows["particle_steps_per_s"]})
+    if gpu:
+        table["particles (paper)"] = rows["paper_particles"]
+        table["total ms (paper)"] = rows["paper_ms"]
+        table["particle-steps/s (paper)"] = rows["paper_particle_steps_per_s"]
+        table["speed-up vs paper (same counts)"] = rows["speedup_vs_paper"]
+        table["throughput vs paper (other counts)"] = rows["throughput_vs_paper"]
+    for p in PHASES:
+        if f"{p}_ms" in rows.columns and rows[f"{p}_ms"].notna().any():
+            table[f"{p} ms"] = rows[f"{p}_ms"]
+    if {"step_ms_median", "step_ms_p05", "step_ms_p95"} <= set(rows.columns):
+        table["step ms median [5-95%]"] = [step_time_text(r).split(" (")[0] + f" [{r['step_ms_p05']:.3g}, "
+                                           f"{r['step_ms_p95']:.3g}]" for r in rows.to_dict("records")]
+    table = table.loc[:, [c for c in table.columns if not table[c].isna().all()]]
+    sec.add("table", _table(table), caption=(
+        "Milliseconds per step (each phase's time over the timed steps; pbf holds the neighbour search and the "
+        "constraint iterations) and throughput = particles (the run's largest count) x steps per second. "
+        + ("Beside them the paper's Table 1 (GeForce GTX 780 Ti): a speed-up only where the particle counts match, "
+           "else the ratio of throughputs. " if gpu else "")
+        + "A row 'adaptive (name)' is the adaptive study's best variant (cloudpbf adaptive-pareto)."))
+    paper = _paper_table()
+    missing_rows = set(paper["example"] + "/" + paper["mode"]) - set(measured["example"] + "/" + measured["mode"])
+    if missing_rows:
+        sec.add("note", "rows not measured in this study: " + ", ".join(sorted(missing_rows)), level="missing",
+                command=_command("table1", inp))
+    sec.provenance = _provenance(measured, env=env)
+
+
+def _phases(inp: Inputs, sec: Section, env: dict | None) -> None:
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        _missing(sec, "table1.csv (per-phase timings)", "table1", inp)
+        return
+    paper = _paper_table()
+    sec.add("image", plots.phase_bars(measured, paper), caption=(
+        "Stacked ms per step of the Table 1 phases (pbf includes neighbour search and constraint iterations). "
+        "Phases a run does not have (splitting and merging without adaptivity) are absent, not zero."))
+    shares = measured[["example", "mode"]].copy()
+    total = _measured_total(measured)
+    for p in PHASES:
+        if f"{p}_ms" in measured.columns and measured[f"{p}_ms"].notna().any():
+            shares[f"{p} %"] = 100.0 * pd.to_numeric(measured[f"{p}_ms"], errors="coerce") / total
+    sec.add("table", _table(shares, "{:.1f}"), caption="share of each phase in the measured step time (%)")
+    cost, cost_path = inp.csv("adaptive_cost")
+    if cost is None:
+        _missing(sec, "adaptive_cost.csv (splitting and merging at ~500k adaptive particles, GPU)", "adaptive_cost", inp)
+    else:
+        cols = [c for c in ("scene", "spacing_m", "mean_particles", "max_particles", "splitting_ms", "merging_ms",
+                            "merge_passes_ms", "compaction_ms", "pbf_ms", "split_target_ms", "merge_target_ms",
+                            "meets_targets", "device", "commit") if c in cost.columns]
+        sec.add("table", _table(cost[cols]), caption=(
+            f"Splitting and merging at the size of the targets, from {cost_path.name}: ms per step over the whole "
+            "run (merge_passes and compaction are parts of merging; pbf is the same run's constraint solve). "
+            "meets_targets is left empty off the GPU or below 400k particles."))
+    sec.provenance = _provenance(measured, env=env)
+
+
+def table1_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
+    card = Card("table1", "Table 1 against the paper")
+    measured, _ = inp.csv("table1")
+    if measured is None:
+        return missing_card(card, inp, "no table1.csv", "table1")
+    rows = paper_comparison(measured, env)
+    rows = rows[rows["variant"] == ""]
+    card.links = section_link("table1", titles) + data_link(inp, "table1.csv")
+    scale = rows["scale"].iloc[0]
+    labels = [r.replace(" non-adaptive", "").replace(" adaptive", " adapt.") for r in rows["row"]]
+    if scale != "gpu":
+        rates = ", ".join(f"{r['row']} {r['particle_steps_per_s']:.3g}" for r in rows.to_dict("records"))
+        counts = pd.to_numeric(rows["max_particles"], errors="coerce")
+        card.answer = (f"Throughput at the {scale} scale ({counts.min():,.0f}-{counts.max():,.0f} particles): "
+                       f"{rates} particle-steps per second.")
+        card.detail = PAPER_NEEDS_GPU
+        card.level = "warn"
+        card.figure = gp.bars(labels, rows["particle_steps_per_s"], ylabel="particle-steps / s")
+        return card
+    matched = rows[rows["counts_match"]]
+    other = rows[~rows["counts_match"]]
+    parts = [f"{r['row']} {r['speedup_vs_paper']:.3g}x"
+             + (f" [{r['speedup_lo']:.3g}, {r['speedup_hi']:.3g}]" if np.isfinite(r["speedup_lo"]) else "")
+             for r in matched.to_dict("records")]
+    card.answer = ("Per step faster than the paper at its particle counts: " + ", ".join(parts) + "."
+                   if parts else "No row runs at the paper's particle counts: throughput only.")
+    details = []
+    if len(other):
+        details.append("Other particle counts, so throughput (particle-steps/s) instead of a speed-up: " + ", ".join(
+            f"{r['row']} {r['max_particles']:,.0f} against {r['paper_particles']:,.0f} particles, "
+            f"{r['throughput_vs_paper']:.3g}x the paper's throughput" for r in other.to_dict("records")) + ".")
+    first = rows.iloc[0].to_dict()
+    details.append(f"{first['row']}: {step_time_text(first)}"
+                   + (": no interval on the speed-ups." if not np.isfinite(first["speedup_lo"]) else
+                      "; intervals: the paper's ms over our 95th and 5th percentile step."))
+    card.detail = " ".join(details)
+    card.figure = gp.bars(labels, rows["total_ms"], reference=rows["paper_ms"], ylabel="ms per step")
+    return card
+
+
 register(Study("table1", order=10, run=lambda ctx, scene: run_table1(ctx), sections=("table1", "phases"),
-                report=(ReportSection("table1", "Table 1: phase timings against the paper", "bench.report.build:_table1", 10),
-                        ReportSection("phases", "Per-phase cost", "bench.report.build:_phases", 20),),
+                report=(ReportSection("table1", "Table 1: phase timings against the paper", _table1, 10, "Table 1"),
+                        ReportSection("phases", "Per-phase cost", _phases, 20, "Phases"),),
+                glance=(GlanceCard(table1_card, 10),), produces={"table1": "cloudpbf table1 --out {out}"},
                 outputs=("table1.csv",), command=table1_command))

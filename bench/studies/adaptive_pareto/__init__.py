@@ -104,7 +104,8 @@ from bench.studies.adaptive_pareto.design import (ADAPTIVE_SPACINGS, ANALYSIS_GR
                                                   SPACING_FACTOR, UNIFORM_SPACINGS, Config, configs, finest_spacing,
                                                   plan, scene_for, variant_name)  # noqa: F401
 from bench.studies.context import StudyContext
-from bench.studies.registry import ReportSection, Study, register
+from bench.studies.adaptive_pareto.report import _adaptive_pareto, adaptive_front_card
+from bench.studies.registry import GlanceCard, ReportSection, Study, register
 from pbf_cuda.scene import load_scene
 
 
@@ -256,7 +257,10 @@ def _echo_verdict(verdict: dict) -> None:
 
 
 register(Study("adaptive-pareto", order=45, sections=("adaptive_pareto",),
-               report=(ReportSection("adaptive_pareto", "Adaptive mode at equal error", "bench.report.build:_adaptive_pareto", 70),),
+               report=(ReportSection("adaptive_pareto", "Adaptive mode at equal error", _adaptive_pareto, 70,
+                                     "Adaptive front"),),
+               glance=(GlanceCard(adaptive_front_card, 20, slot="adaptive_front"),),
+               produces={"adaptive_pareto": "cloudpbf adaptive-pareto --scene growing --out {out}"},
                outputs=("adaptive_pareto.csv", "adaptive_pareto_configs.csv", "adaptive_pareto_series.csv",
                         "adaptive_verdict.json"),
                command=adaptive_pareto_command))

@@ -1,15 +1,18 @@
-"""The report's section "Time to solution at equal error" (bench.studies.time_to_solution): the cheapest settings
-for each error budget, the speed-up over today's defaults at their own error, and the front of error against
-wall time per simulated second (one marker per setting)."""
+"""The time-to-solution study's part of the report: its section "Time to solution at equal error" (the cheapest
+settings for each error budget, the speed-up over today's defaults at their own error, and the front of error
+against wall time per simulated second, one marker per setting) and its verdict card."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pandas as pd
 
-from . import plots
-from .common import Inputs, Section, _provenance, _shown_path, _table
+from bench.report import glance_plots as gp
+from bench.report import plots
+from bench.report.common import Inputs, Section, _provenance, _shown_path, _table
+from bench.report.glance import RESAMPLED, Card, data_link, ratio_words, resampled, section_link
 
 SCENES = ("growing", "cumulus", "cycling")
 GROUP_STYLE = {  # group -> (marker, colour, label)
@@ -95,7 +98,7 @@ def _budget_table(verdict: dict) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def section(inp: Inputs, sec: Section, env: dict | None) -> None:
+def time_to_solution_section(inp: Inputs, sec: Section, env: dict | None) -> None:
     """One block per scene the study ran (growing first): the verdict, the budgets, the plot, the front."""
     frames = []
     for scene in SCENES:
@@ -121,3 +124,45 @@ def section(inp: Inputs, sec: Section, env: dict | None) -> None:
                 command=f"cloudpbf time-to-solution --out {_shown_path(inp.out)}")
         return
     sec.provenance = _provenance(*frames, env=env)
+
+
+def time_to_solution_card(inp: Inputs, env: dict | None, titles: dict) -> Card | None:
+    """The time-to-solution study's verdicts (time_to_solution_verdict[_scene].json, bench.studies.time_to_solution):
+    the defaults' wall time per simulated second over the cheapest setting's at the defaults' own error, with its
+    5-95% interval over resampled seeds; None where the study did not run."""
+    card = Card("time_to_solution", "Time to solution at equal error")
+    parts, figure = [], None
+    for scene in SCENES:
+        sfx = "" if scene == "growing" else f"_{scene}"
+        path = inp.data / f"time_to_solution_verdict{sfx}.json"
+        if not path.is_file():
+            continue
+        v = json.loads(path.read_text())
+        card.links += data_link(inp, path.name, f"time_to_solution{sfx}.csv")
+        speed, budgets = v.get("speedup_at_default_error"), v.get("budgets") or []
+        pick = (budgets[0].get("cheapest") or {}) if budgets else {}
+        if speed is None or not np.isfinite(speed) or not pick:
+            parts.append(str(v.get("verdict", f"{scene}: no verdict")))
+            continue
+        interval = v.get("speedup_interval")
+        ci = resampled(speed, interval, v.get("seeds"))
+        default = v.get("default") or {}
+        parts.append(f"{scene}: {pick.get('setting', '?')} {ratio_words(ci, interval=RESAMPLED)} than the defaults "
+                     f"({default.get('setting', '?')}) at their error {default.get('error', math.nan):.3g}")
+        frame, _ = inp.csv(f"time_to_solution{sfx}")
+        if figure is None and frame is not None and {"wall_per_sim_s", "error"} <= set(frame.columns):
+            front = frame[frame["front"].map(plots._truthy)] if "front" in frame.columns else frame.iloc[:0]
+            others = frame.drop(front.index)
+            figure = gp.front(1e3 * front["wall_per_sim_s"], front["error"], 1e3 * others["wall_per_sim_s"],
+                              others["error"], best=(1e3 * float(pick["wall_per_sim_s"]), float(pick["error"]))
+                              if pick.get("wall_per_sim_s") is not None and pick.get("error") is not None else None,
+                              xlabel="ms per simulated second", uniform_label="front", others_label="settings")
+    if not parts:
+        return None
+    card.answer = "; ".join(parts) + "."
+    card.detail = ("Cost: the solver's wall time per simulated second; error against a converged reference; "
+                   "interval: 5-95% over resampled seeds.")
+    card.figure = figure
+    card.level = "warn" if "no difference measured" in card.answer or "no verdict" in card.answer else "ok"
+    card.links = section_link("time_to_solution", titles) + card.links
+    return card
