@@ -40,7 +40,6 @@ numerical diffusion plays that role and smoothing.kappa is ignored.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -48,9 +47,10 @@ import numpy as np
 import jax.numpy as jnp
 from jax import lax
 
-from pbf_cuda.environment import EnvironmentProfile, vapor_ratio
+from pbf_cuda.environment import vapor_ratio
 
 from . import compat
+from .parameters import Params, params_from_scene
 from .projection import _lower_face, laplacian_eigenvalues, project, zero_wall_faces
 
 compat.apply()
@@ -66,70 +66,6 @@ FIELD_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
 SCALAR_KEYS = ("time", "rain_total", "water_relaxation_total", "heat_relaxation_total")
 STATE_KEYS = FIELD_KEYS + SCALAR_KEYS
 UP = 1  # y is up
-
-
-@dataclasses.dataclass(frozen=True)
-class Params:
-    """Everything the step needs, as Python numbers (static under jit)."""
-    shape: tuple
-    size: tuple
-    periodic: tuple
-    dt: float
-    environment: EnvironmentProfile   # T0(y) (pbf_cuda/environment.py)
-    dry_lapse_rate: float
-    buoyancy: float
-    cloud_gravity: float
-    latent_heat: float
-    phase_rate: float
-    saturation_a: float
-    saturation_b: float
-    saturation_c: float
-    heating_rate: float
-    heating_depth: float
-    noise_frequency: float
-    noise_amplitude: float
-    noise_offset: tuple
-    heating_patch_radius: float
-    initial_vapor_ratio: float
-    vapor_ratio_above: float
-    vapor_profile: str
-    vorticity: float
-    gravity: tuple
-    diurnal_period: float = 0.0           # P of eq. C1, s (0: constant heating)
-    relaxation_time: float = 0.0          # tau of eq. C2, s (0: off)
-    autoconversion_rate: float = 0.0      # k_auto of eq. C3, 1/s (0: off)
-    autoconversion_threshold: float = 0.0  # q_c0 of eq. C3, kg/kg
-    cfl_target: float = 0.8
-    max_substeps: int = 16
-    rest_density: float = 1.0   # kg/m^3: a cell's mass is rest_density * cell volume (budgets)
-
-    @property
-    def steps(self) -> tuple:
-        return tuple(L / n for L, n in zip(self.size, self.shape))
-
-    @property
-    def cell_volume(self) -> float:
-        return float(np.prod(self.steps))
-
-
-def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
-    a = scene.atmosphere
-    return Params(
-        shape=tuple(int(n) for n in shape), size=tuple(float(s) for s in scene.domain.size),
-        periodic=tuple(b == "periodic" for b in scene.domain.boundary), dt=float(scene.time.dt),
-        environment=EnvironmentProfile.of(a), dry_lapse_rate=a.dry_lapse_rate,
-        buoyancy=a.buoyancy, cloud_gravity=a.cloud_gravity, latent_heat=a.latent_heat, phase_rate=a.phase_rate,
-        saturation_a=a.saturation_a, saturation_b=a.saturation_b, saturation_c=a.saturation_c,
-        heating_rate=a.heating_rate, heating_depth=a.heating_depth, noise_frequency=a.noise_frequency,
-        noise_amplitude=a.noise_amplitude, noise_offset=tuple(a.noise_offset),
-        heating_patch_radius=float(a.heating_patch_radius),
-        initial_vapor_ratio=a.initial_vapor_ratio, vapor_ratio_above=float(a.vapor_ratio_above),
-        vapor_profile=a.vapor_profile,
-        vorticity=float(scene.pbf.vorticity), gravity=tuple(float(g) for g in scene.pbf.gravity),
-        diurnal_period=float(a.diurnal_period), relaxation_time=float(a.relaxation_time),
-        autoconversion_rate=float(a.autoconversion_rate), autoconversion_threshold=float(a.autoconversion_threshold),
-        cfl_target=float(cfl_target), max_substeps=int(max_substeps),
-        rest_density=float(scene.particles.rest_density))
 
 
 # ---- geometry ---------------------------------------------------------------------------
