@@ -225,6 +225,8 @@ class _Run:
         diag_steps = set(spec.diagnostic_steps())
         snap_steps = set(spec.snapshot_steps())
         total = spec.total_steps
+        times_left = [t for t in spec.diagnostic_times if t > float(sim.time) * (1.0 + 1e-9)] if spec.diagnostics else []
+        controlled = float(getattr(spec.scene.time, "cfl", 0.0) or 0.0) > 0.0
         chunk = 1 if spec.record_steps else 10
         failure = None
         from cloudpbf_io.progress import progress_bar as tqdm
@@ -243,6 +245,9 @@ class _Run:
                 n = min(targets) - s0
                 if spec.end_time is not None:
                     n = min(n, _steps_toward(spec.end_time - float(sim.time), sim))
+                if times_left:      # a controlled step stops before each time too, so its last step before it has a row
+                    remaining = times_left[0] - float(sim.time)
+                    n = min(n, _steps_below(remaining, sim) if controlled else _steps_toward(remaining, sim))
                 t0 = time.perf_counter()
                 try:
                     sim.step(n)
@@ -262,7 +267,8 @@ class _Run:
                     sim.reset_timings()
                     base_timings = {}
                 last = s >= total or self._reached_end(sim)     # a run with an end time: its final step too
-                if s in diag_steps or s in snap_steps or (last and spec.end_time is not None):
+                bracket = _brackets_a_time(times_left, float(sim.time), sim, controlled)
+                if s in diag_steps or s in snap_steps or (last and spec.end_time is not None) or bracket:
                     self._record(sim, row, s in snap_steps or (last and total in snap_steps))
                 if self.adapter.can_checkpoint and s % spec.checkpoint_interval == 0 and not last:
                     self._checkpoint(sim, {"step": s, "timings": merge_timings(base_timings, sim.timings()),
@@ -353,6 +359,30 @@ class _Run:
         self.log("finished " + ("stable" if failure is None else f"UNSTABLE at step {failure.step}")
                  + f" ({step_wall:.2f} s in steps)")
         return RunResult(self.dir, info, cached=False)
+
+
+def _brackets_a_time(times_left: list, t: float, sim, controlled: bool) -> bool:
+    """Whether the state at simulated time t gets a row for RunSpec.diagnostic_times: it is the first to reach the
+    next of `times_left` (which then leaves the list), or, in a CFL-controlled run, the last before it (its next
+    step, sim.time_step, reaches it)."""
+    reached = False
+    while times_left and t >= times_left[0] * (1.0 - 1e-9):
+        times_left.pop(0)
+        reached = True
+    dt = float(getattr(sim, "time_step", 0.0) or 0.0)
+    before = controlled and bool(times_left) and t + dt >= times_left[0] * (1.0 - 1e-9)
+    return reached or before
+
+
+def _steps_below(remaining: float, sim) -> int:
+    """How many CFL-controlled steps surely stay short of `remaining` more seconds even if each grew by the control's
+    largest factor (1.25); at least 1."""
+    dt = float(getattr(sim, "time_step", 0.0) or 0.0)
+    n, covered = 0, 0.0
+    while dt > 0.0 and n < 10**6 and covered + dt * 1.25 ** n < remaining * (1.0 - 1e-9):
+        covered += dt * 1.25 ** n
+        n += 1
+    return max(1, n)
 
 
 def _steps_toward(remaining: float, sim) -> int:

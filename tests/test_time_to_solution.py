@@ -2,6 +2,7 @@
 front, the cheapest setting at a budget, the speed-up and its interval), and one tiny real run at smoke scale."""
 import json
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -149,6 +150,12 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
     fixed = runs[runs["setting"] == "200m-dt16"]
     assert fixed["steps"].eq(4).all() and fixed["time_s"].eq(64.0).all()
     assert (runs.loc[runs["complete"], "wall_per_sim_s"] > 0).all()
+    for run in runs[runs["setting"] == "200m-cfl0.5"].itertuples():   # rows bracket each analysis time
+        rows = pd.read_parquet(Path(run.run_dir) / "stats.parquet")
+        t, dt = rows["time_s"].to_numpy(), rows["dt"].to_numpy()
+        for tk in (32.0, 64.0):
+            after = np.flatnonzero(t >= tk - 1e-6)[0]
+            assert after > 0 and t[after - 1] < tk <= t[after] and t[after] - t[after - 1] == pytest.approx(dt[after - 1])
     data = ctx.data
     for name in ("time_to_solution.csv", "time_to_solution_runs.csv", "time_to_solution_series.csv",
                  "time_to_solution_verdict.json"):
@@ -175,6 +182,12 @@ def test_end_time_enters_the_run_key_only_when_set():
     assert timed.options()["end_time"] == 20.0 and timed.key() != spec.key()
     with pytest.raises(ValueError, match="end_time"):
         spec.replace(end_time=-1.0)
+    assert "diagnostic_times" not in spec.options()
+    bracketed = spec.replace(diagnostic_times=(5, 10.5))
+    assert bracketed.options()["diagnostic_times"] == [5.0, 10.5] and bracketed.key() != spec.key()
+    for bad in ((10.0, 5.0), (0.0,), (float("nan"),), (True,)):
+        with pytest.raises(ValueError, match="diagnostic_times"):
+            spec.replace(diagnostic_times=bad)
 
 
 def test_errors_below_the_seed_noise_floor_count_as_equal():

@@ -165,6 +165,10 @@ class RunSpec:
     end_time: simulated time, s, at which the run ends (the first step that reaches it is its last, with a
       diagnostics row and the final snapshot); `steps` is then an upper bound.  For runs whose step varies
       (time.cfl > 0), so that every setting covers the same simulated time.  None: the run is `steps` long
+    diagnostic_times: simulated times, s, each bracketed by diagnostics rows: one at the first step that reaches
+      it and, where the step is CFL-controlled (time.cfl > 0) and so cannot be planned to land on it, one at
+      the last step before it; a series interpolated onto these times is then off by less than one step's
+      change.  Empty: rows by step counts only
     """
     solver: str
     scene: Scene
@@ -182,6 +186,7 @@ class RunSpec:
     dtype: str | None = None
     diagnostics_resolution: tuple | None = None
     end_time: float | None = None
+    diagnostic_times: tuple = ()
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -211,6 +216,11 @@ class RunSpec:
         if self.end_time is not None and (isinstance(self.end_time, bool) or not isinstance(self.end_time, (int, float))
                                           or not 0.0 < float(self.end_time) < 1e12):
             raise ValueError(f"end_time = {self.end_time!r}: expected a positive number of seconds")
+        times = tuple(self.diagnostic_times)
+        if any(isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < float(t) < 1e12 for t in times) \
+                or any(b <= a for a, b in zip(times, times[1:])):
+            raise ValueError(f"diagnostic_times = {self.diagnostic_times!r}: expected increasing positive seconds")
+        object.__setattr__(self, "diagnostic_times", tuple(float(t) for t in times))
 
     # ---- derived -----------------------------------------------------------------------------
     @property
@@ -249,6 +259,8 @@ class RunSpec:
                "diagnostics_resolution": list(self.diagnostics_resolution) if self.diagnostics_resolution else None}
         if self.end_time is not None:       # only when set: the keys of runs without it stay as they were
             out["end_time"] = float(self.end_time)
+        if self.diagnostic_times:           # likewise
+            out["diagnostic_times"] = list(self.diagnostic_times)
         return {**out, **ADAPTERS[self.solver].options(self)}
 
     def identity(self) -> dict:

@@ -191,16 +191,20 @@ def setting_scene(setting: Setting, scene_name: str, scale_name: str, particles:
         cap = math.ceil(t_end / dt_min)
     else:
         cap = None
-    # rows every T / times at the fixed step; a CFL-controlled run's step is not known ahead: rows as if it
-    # were the geometric mean of its first and largest step (the series are interpolated onto the analysis times)
-    every_dt = math.sqrt(setting.dt * sizes.dt_max) if setting.cfl else setting.dt
-    over["time.snapshot_every"] = max(1, int(round(t_end / sizes.times / every_dt)))
+    # rows every T / times at the fixed step, on the analysis times; a CFL-controlled run's steps cannot be planned
+    # to land on them: its rows bracket each analysis time instead (RunSpec.diagnostic_times, set in plan())
     steps = cap or max(1, math.ceil(t_end / setting.dt * (1 - 1e-9)))
+    over["time.snapshot_every"] = steps if setting.cfl else max(1, int(round(t_end / sizes.times / setting.dt)))
     over["time.steps"] = steps
     return scene.replace(**over), steps
 
 
 GROUPS = ("grid", "iterations", "divergence", "cfl", "adaptive")   # of settings (with the reference)
+
+
+def analysis_times(t_end: float, sizes: Sizes) -> np.ndarray:
+    """The times, s, at which the series are compared: `sizes.times` of them, evenly spaced in (0, T]."""
+    return np.linspace(0.0, t_end, int(sizes.times) + 1)[1:]
 
 
 def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None,
@@ -215,13 +219,14 @@ def plan(ctx, scene_name: str, seeds: int, sizes: Sizes | None = None,
     study = [s for s in settings(base, sizes)
              if groups is None or s.group in groups or s.default or s.group == "reference"]
     t_end = end_time(base, sizes)
+    times = tuple(float(t) for t in analysis_times(t_end, sizes))
     entries = []
     for setting in study:
         scene, steps = setting_scene(setting, scene_name, ctx.scale.name, ctx.scale.particles, sizes, base)
         for seed in range(seeds):
             spec = runs.RunSpec("particles", scene, backend=ctx.backend, seed=seed, steps=steps, keep_snapshots=0,
                                 checkpoint_every=steps, diagnostics_resolution=sizes.analysis_grid,
-                                warmup_steps=1, end_time=t_end)
+                                warmup_steps=1, end_time=t_end, diagnostic_times=times if setting.cfl else ())
             entries.append((setting, seed, spec))
     return study, entries, sizes, base
 
@@ -316,7 +321,7 @@ def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, repli
     results = ctx.run_parallel([e[2] for e in entries], f"time-to-solution {scene_name}")
     device = next((r.device for r in results if getattr(r, "device", None)), "unknown")
     t_end = end_time(base, sizes)
-    times = np.linspace(0.0, t_end, int(sizes.times) + 1)[1:]      # the analysis times, in (0, T]
+    times = analysis_times(t_end, sizes)
     rows, series = [], []
     for (setting, seed, spec), result in zip(entries, results):
         rows.append(run_row(setting, seed, spec, result, t_end, device, ctx.commit))
