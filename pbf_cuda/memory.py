@@ -6,7 +6,8 @@ the boundary particles,
 the uniform cell grid, and the host arrays built while the initial state is made.  Adaptive scenes
 reserve ``adaptive.capacity`` slots per initial particle.  :func:`check_memory` compares it with
 what the chosen device has available and raises :class:`~pbf_cuda.scene.SceneError` naming the
-particle count and the memory needed.
+particle count and the memory needed.  tests/test_memory_estimate.py measures the bytes per slot the
+CPU solver allocates against :func:`solver_bytes_per_slot`, so the two cannot drift apart.
 """
 from __future__ import annotations
 
@@ -23,8 +24,11 @@ __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "check_memor
 FLOAT4, FLOAT, UINT = 16, 4, 4
 SORT_SCRATCH_BYTES = 1           # the radix sort's own scratch (CUB's digit histograms and look-back tiles, under
                                  # a byte per particle); its second buffers are uint_tmp and perm_alt
-ADAPTIVE_BYTES_PER_SLOT = 64     # flags, shape energy, split/merge bookkeeping, with room for the sub-cells and
-                                 # the merge walk's mark per cell (a cell holds several slots)
+ADAPTIVE_SLOT_ARRAY_BYTES = 21   # SolverData::allocate's split/merge bookkeeping: a uint8 flag, the shape energy,
+                                 # the split count, slot and candidate, the merge partner (4 bytes each)
+ADAPTIVE_STEP_BYTES = 43         # made during a step: room for the sub-cells and the merge walk's mark per cell
+                                 # (a cell holds several slots)
+ADAPTIVE_BYTES_PER_SLOT = ADAPTIVE_SLOT_ARRAY_BYTES + ADAPTIVE_STEP_BYTES
 BYTES_PER_BOUNDARY = 256         # float4 position, three floats, and the walls' table: each boundary particle
                                  # copied (float4) into the segments of the 11-14 cells that reach it
                                  # (stats()["wall_candidates"]: growing, dam_break, cycling)
