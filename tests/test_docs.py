@@ -120,7 +120,7 @@ def test_api_reference_is_generated_from_docstrings(tmp_path):
     assert out.returncode == 0, out.stderr
     page = (tmp_path / "api" / "pbf_cuda" / "simulation.html").read_text()
     assert "to_pyvista" in page and "progress" in page
-    assert "fields_to_xarray" in (tmp_path / "api" / "pbf_cuda" / "export.html").read_text()
-    assert "read_bgeo" in (tmp_path / "api" / "pbf_cuda" / "bgeo.html").read_text()
+    assert "fields_to_xarray" in (tmp_path / "api" / "cloudpbf_io" / "export.html").read_text()
+    assert "read_bgeo" in (tmp_path / "api" / "cloudpbf_io" / "bgeo.html").read_text()
     assert (tmp_path / "api" / "grid_baseline" / "simulation.html").exists()
     assert (tmp_path / "api" / "index.html").exists()
