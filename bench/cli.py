@@ -32,11 +32,17 @@ from typing import Annotated, Optional
 
 import typer
 
+from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, Solver, WorkersOpt, check_backend, check_folder, click, parse_list,
                               parse_overrides, refusals, refusing, scene_arg, study_context)
 from bench.cli_runs import physics_lines, resolve_run, runs_app
+from bench.export import ExportError, FormatError, export_run
 from bench.grid_scaling import grid_scaling_command
+from bench.store.identity import effective_seed
+from bench.studies.registry import studies
+from pbf_cuda._version import version
+from pbf_cuda.scene import SceneError, list_scenes, load_scene
 
 app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   rich_markup_mode=None,
@@ -45,7 +51,6 @@ app = typer.Typer(name="cloudpbf", no_args_is_help=True, add_completion=False, p
 
 def _version_callback(value: bool) -> None:
     if value:
-        from pbf_cuda._version import version
         typer.echo(f"cloudpbf {version()}")
         raise typer.Exit()
 
@@ -62,7 +67,6 @@ def _main_options(
 @app.command()
 def scenes() -> None:
     """List the shipped scenes with their particle counts and descriptions."""
-    from pbf_cuda.scene import list_scenes, load_scene
     for name in list_scenes():
         scene = load_scene(name)
         kind = "cloud" if scene.thermodynamics else "fluid"
@@ -93,11 +97,9 @@ def run(
     """One run of a scene through the run cache (a cached run returns at once).
 
     Exit code 0 when the run is stable, 1 when it went unstable (the reason, step and particles are printed)."""
-    from bench import runs
     check_folder(runs_root, "--runs-root")
     scene_obj = scene_arg(scene, parse_overrides(set_))
     if particles is not None:
-        from pbf_cuda.scene import SceneError
         try:
             scene_obj = scene_obj.with_particle_count(particles)
         except SceneError as exc:
@@ -116,7 +118,6 @@ def run(
     with refusals(particles):
         result = runs.execute(spec, runs_root, quiet=quiet)
     timings = result.timings()
-    from bench.store.identity import effective_seed
     typer.echo(f"run directory: {result.path}{'  (cached)' if result.cached else ''}")
     typer.echo(f"{spec.solver} {scene_obj.name}: {result.step} steps, seed {effective_seed(spec.identity())}, "
                f"backend {result.backend}, "
@@ -135,7 +136,6 @@ def run(
 
 # ---- the studies' own commands (each declared in its study file, found through the registry) ------------
 def _add_study_commands() -> None:
-    from bench.studies.registry import studies
     for study in studies():
         if study.command is not None:
             app.command(study.name)(refusing(study.command))   # SceneError & co.: exit 2
@@ -148,7 +148,7 @@ app.add_typer(runs_app, name="runs")
 @app.command()
 def report(out: OutOpt = DEFAULT_OUT) -> None:
     """Build OUT/index.html from what OUT/data holds (missing studies are shown as not run)."""
-    from bench.studies.page import build_report
+    from bench.studies.page import build_report  # harness extra (matplotlib, pandas)
     if not (out / "data").is_dir():
         raise typer.BadParameter(f"{out / 'data'} does not exist; run a study (e.g. `cloudpbf demo`) first",
                                  param_hint="'--out'")
@@ -167,7 +167,7 @@ def demo(
     """Everything: environment, Table 1, scaling, compare, sweep, stress, renders, then the report.
 
     Prints the path of index.html.  Exit code 1 when a study failed (the report shows which)."""
-    from bench.studies.demo import run_demo, study_names
+    from bench.studies.demo import run_demo, study_names  # harness extra (matplotlib, pandas)
     studies = study_names()
     chosen = tuple(s.strip() for s in only.split(",") if s.strip()) if only else studies
     bad = [s for s in chosen if s not in studies]
@@ -221,7 +221,6 @@ def export(
     by cell.  Grid runs: the cell-centred fields (vtu, vtp, netcdf, zarr).  Nothing that exists is
     replaced (--force: an earlier export of the same run only); exit code 2 when the target exists, the
     run is unfinished or damaged, or memory or disk do not suffice."""
-    from bench.export import ExportError, FormatError, export_run
     cells = parse_list(resolution, "--resolution", int, 1, 4096, "64,64,64")
     if cells is not None and len(cells) != 3:
         raise typer.BadParameter(f"'{resolution}': expected three cell counts nx,ny,nz", param_hint="'--resolution'")

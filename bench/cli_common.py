@@ -7,7 +7,9 @@ bench.studies.registry).  It never imports a study or the face."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib
+import os
 import tomllib
 from enum import Enum
 from pathlib import Path
@@ -20,6 +22,9 @@ from bench import environment, runs
 from bench.store.safe import StoreError
 from bench.studies.context import GpuError, SchedulerError, StudyContext, check_scheduler_address
 from bench.studies.scales import resolve_scale
+from pbf_cuda.buildinfo import StaleBuildError
+from pbf_cuda.scene import SceneError, list_scenes, load_scene
+from pbf_cuda.simulation import _core, available_backends
 
 # The click that typer runs on: the click package up to typer 0.24, typer's own vendored copy from 0.25
 # on.  Exceptions must come from that one, or typer does not turn them into "Usage: ... Error: ..." and
@@ -77,7 +82,6 @@ GpusOpt = Annotated[Optional[str], typer.Option(
 def scene_arg(name: str, overrides: dict | None = None, param: str = "SCENE"):
     """A scene by name or path; unknown names list the shipped scenes (exit code 2, naming `param`: the
     argument or option that gave the name)."""
-    from pbf_cuda.scene import SceneError, list_scenes, load_scene
     path = Path(name)
     try:
         is_file = path.suffix == ".toml" and path.exists()
@@ -126,7 +130,6 @@ def parse_sizes(text: str | None, name: str, lo: int) -> list[int] | None:
 def check_folder(path: Optional[Path], option: str) -> None:
     """A folder option: an existing folder or a path whose first existing ancestor is a writable folder.
     Without --runs-root, $CLOUDPBF_RUNS is checked in its place."""
-    import os
     if path is None and option == "--runs-root" and os.environ.get("CLOUDPBF_RUNS"):
         path, option = Path(os.environ["CLOUDPBF_RUNS"]), "$CLOUDPBF_RUNS"
     if path is None:
@@ -155,13 +158,12 @@ def check_backend(backend: Backend, solver: str = "particles") -> None:
         return
     if solver == "grid":
         try:
-            import jax
+            import jax  # grid extra (jax)
             ok = bool(jax.devices("gpu"))
         except Exception:  # noqa: BLE001  (jax raises RuntimeError when no GPU backend exists)
             ok = False
         why = "jax sees no GPU"
     else:
-        from pbf_cuda.simulation import _core, available_backends
         ok = "cuda" in available_backends()
         why = "pbf_cuda was built without CUDA" if not _core().cuda_built() else "no CUDA device is visible"
     if not ok:
@@ -172,8 +174,6 @@ def check_backend(backend: Backend, solver: str = "particles") -> None:
 def refusals(particles: Optional[int] = None):
     """What a command cannot do as asked ends in one line and exit code 2: scene and memory checks,
     an unusable scheduler, a stale compiled solver, a run cache that cannot be written."""
-    from pbf_cuda.buildinfo import StaleBuildError
-    from pbf_cuda.scene import SceneError
     try:
         yield
     except StoreError as exc:
@@ -192,7 +192,6 @@ def refusals(particles: Optional[int] = None):
 def refusing(command):
     """`command` with what it cannot do as asked (a scene too large, a cache it cannot write, ...) turned into
     one line and exit code 2 (refusals), whatever path inside it raised it."""
-    import functools
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):

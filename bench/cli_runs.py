@@ -14,6 +14,9 @@ from typing import Annotated, Optional
 import typer
 
 from bench.cli_common import RunsRootOpt
+from bench.store.catalog import RunLookupError, find_run, folder_bytes, list_runs, prune_runs, run_entry
+from bench.store.identity import default_root
+from bench.store.manifest import quarantine_folders, verify_run
 
 runs_app = typer.Typer(name="runs", add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
                        invoke_without_command=True,
@@ -23,7 +26,6 @@ STATUSES = ("stable", "unstable", "unfinished", "damaged")
 
 
 def _root(runs_root: Optional[Path]) -> Path:
-    from bench.store.identity import default_root
     return Path(runs_root) if runs_root is not None else default_root()
 
 
@@ -43,7 +45,6 @@ def human_age(seconds: float) -> str:
 
 def resolve_run(text: str, runs_root: Optional[Path], param: str = "'RUN'") -> Path:
     """A run folder from a path or a run-id prefix; exit 2 naming `param` when none or several fit."""
-    from bench.store.catalog import RunLookupError, find_run
     try:
         return find_run(text, _root(runs_root))
     except RunLookupError as exc:
@@ -56,8 +57,6 @@ def runs_list(ctx: typer.Context, runs_root: RunsRootOpt = None) -> None:
     ctx.obj = {"runs_root": runs_root}
     if ctx.invoked_subcommand is not None:
         return
-    from bench.store.catalog import folder_bytes, list_runs
-    from bench.store.manifest import quarantine_folders
     root = _root(runs_root)
     entries = list_runs(root)
     if not entries:
@@ -85,8 +84,6 @@ def runs_show(
     runs_root: RunsRootOpt = None,
 ) -> None:
     """One run: what it is, its result, its files verified against the manifest."""
-    from bench.store.catalog import run_entry
-    from bench.store.manifest import verify_run
     runs_root = runs_root or (ctx.obj or {}).get("runs_root")
     path = resolve_run(run, runs_root, "'ID'")
     e = run_entry(path)
@@ -119,7 +116,6 @@ def runs_prune(
     """Remove runs by status (default: unfinished and damaged) and the quarantine, after a confirmation.
 
     Runs being written (locked) are never removed."""
-    from bench.store.catalog import prune_runs
     runs_root = runs_root or (ctx.obj or {}).get("runs_root")
     chosen = {s.strip() for s in status.split(",") if s.strip()}
     bad = sorted(chosen - set(STATUSES))
@@ -152,7 +148,7 @@ def runs_prune(
 def physics_lines(path: Path, info: dict) -> list[str]:
     """The physics of a finished run in a line or two: particles (or cells), steps, simulated time, the
     largest speed, the density error and, where the run has cloud, the cloud cover."""
-    import pandas as pd
+    import pandas as pd  # harness extra (pandas)
     tables = []
     for name, reader in (("stats.parquet", pd.read_parquet), ("steps.csv", pd.read_csv)):
         try:

@@ -3,11 +3,13 @@
 The command line needs the ``harness`` extra (typer, pandas, dask, ...); some commands need more
 (``grid`` for the grid baseline, ``viz`` for renders and VTK exports, ``io`` for NetCDF/zarr).  A
 missing one gives a one-line message naming the extra instead of a traceback (exit code 1).
-``cloudpbf --version`` answers before anything else is imported, so it works with no extra installed.
+``cloudpbf --version`` answers before the harness is imported, so it works with no extra installed.
 """
 from __future__ import annotations
 
 import sys
+
+from pbf_cuda._version import version
 
 # top-level module -> the extra of pyproject.toml that installs it
 EXTRA_OF = {
@@ -17,6 +19,8 @@ EXTRA_OF = {
     "jax": "grid", "jaxlib": "grid", "jax_cfd": "grid", "tree_math": "grid",
     "pyvista": "viz", "vtk": "viz",
     "xarray": "io", "h5netcdf": "io", "h5py": "io", "zarr": "io",
+    "PIL": "harness", "psutil": "harness",        # pillow: matplotlib's dependency
+    "dask_cuda": "multigpu", "pysplishsplash": "peers",
 }
 
 
@@ -32,13 +36,9 @@ def missing_extra_message(exc: ModuleNotFoundError) -> str | None:
 
 
 def installed_version() -> str:
-    """The distribution's version from its metadata (no import of the solver or the harness)."""
-    import importlib.metadata
-    try:
-        return importlib.metadata.version("cloudpbf")
-    except importlib.metadata.PackageNotFoundError:
-        from pbf_cuda._version import version   # a source tree that was never installed
-        return version()
+    """The distribution's version from its metadata, else (a source tree never installed) pyproject.toml's;
+    no import of the harness."""
+    return version()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cloudpbf {installed_version()}")
         return 0
     try:
-        from bench.cli import main as cli_main
+        from bench.cli import main as cli_main  # harness extra (typer)
         return cli_main(argv)
     except ModuleNotFoundError as exc:
         message = missing_extra_message(exc)

@@ -10,6 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from cloudpbf_io.files import atomic_write_json
+from pbf_cuda._version import version
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("numpy", "pandas", "pyarrow", "scipy", "jax", "jaxlib", "jax-cfd", "dask", "distributed",
             "matplotlib", "pyvista", "vtk", "jinja2", "typer", "tqdm", "xarray", "h5netcdf", "zarr")
@@ -84,7 +87,6 @@ def versions() -> dict[str, str | None]:
             out[name] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
             out[name] = None
-    from pbf_cuda._version import version
     out["cloudpbf"] = version()          # package metadata (works from a wheel, not only a checkout)
     return out
 
@@ -121,5 +123,4 @@ def environment(scale: str, backend: str) -> dict:
 
 
 def write_environment(out_dir: str | Path, scale: str, backend: str) -> Path:
-    from cloudpbf_io.files import atomic_write_json
     return atomic_write_json(Path(out_dir) / "data" / "environment.json", environment(scale, backend))

@@ -39,6 +39,7 @@ from typing import Callable
 
 import numpy as np
 
+from bench.environment import device_description
 from bench.solvers import ADAPTERS, nonfinite_fields, nonfinite_ids, scene_params
 from bench.store.files import save_frame, save_npz, sha256_file
 from bench.store.identity import RUN_FORMAT, RunSpec, effective_seed
@@ -48,6 +49,7 @@ from bench.store.manifest import (finished_files, info_checksum, manifest, now, 
 from bench.store.result import RunResult
 from bench.store.safe import StoreError, UnsafeFileError, append_line, entry_kind, read_json, store_error
 from cloudpbf_io.files import atomic_write_json, remove_stale_temps
+from cloudpbf_io.progress import progress_bar as tqdm
 from pbf_cuda.protocol import InstabilityError
 
 __all__ = ["execute", "execute_summary", "cached_result", "StoreError"]
@@ -182,7 +184,7 @@ class _Run:
                       {**state, "step": np.int64(step), "time_s": np.float64(sim.time)})
         if not self.spec.diagnostics:
             return
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         row, profiles = self.adapter.diagnostics(sim, self.spec, state)
         when = {"step": step, "time_s": float(sim.time)}
         # The shared statistics keep their names; a solver's own value of the same name (e.g. its exact
@@ -229,7 +231,6 @@ class _Run:
         controlled = float(getattr(spec.scene.time, "cfl", 0.0) or 0.0) > 0.0
         chunk = 1 if spec.record_steps else 10
         failure = None
-        from cloudpbf_io.progress import progress_bar as tqdm
         bar = tqdm(total=total, initial=sim.step_count, desc=f"{spec.solver} {spec.scene.name}", unit="step",
                    disable=True if self.quiet else None, leave=False, dynamic_ncols=True)
         try:
@@ -313,14 +314,13 @@ class _Run:
                        f"{sim.scene.adaptive.capacity}); the run goes on without them")
             self.log(message)
             if not self.quiet:
-                from cloudpbf_io.progress import progress_bar as tqdm
                 tqdm.write(f"warning: {message}")
             self.rejects_logged = rejects
         self.rejects = rejects
 
     def _finish(self, sim, failure, timings, step_wall, timed_wall, max_particles, resumed_from,
                 wall) -> RunResult:
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         spec = self.spec
         save_frame(pd.DataFrame([{"phase": k, **v} for k, v in sorted(timings.items())],
                                columns=["phase", "total_ms", "count", "mean_ms"]), self.dir / "timings.csv")
@@ -330,7 +330,6 @@ class _Run:
             save_frame(pd.DataFrame(self.profile_rows), self.dir / "profiles.parquet")
         if self.step_rows:
             save_frame(pd.DataFrame(self.step_rows), self.dir / "steps.csv")
-        from bench.environment import device_description
         backend = getattr(sim, "backend", None) or self.identity["backend"]
         info = {
             "format": RUN_FORMAT, "key": self.identity_key, "solver": spec.solver, "scene": spec.scene.name,

@@ -39,6 +39,7 @@ import json
 import math
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Mapping
 
@@ -50,7 +51,9 @@ from bench.store.manifest import read_result, verify_run
 from bench.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
 from bench.store.targets import (NETCDF_ATTR, ExportError, check_free_space, disk_error, foreign_entries,
                                   marker_of, staged)
-from cloudpbf_io.export import FIELD_ATTRS, write_bgeo_series, write_particle_series
+from cloudpbf_io.export import FIELD_ATTRS, read_pvd, write_bgeo_series, write_particle_series
+from pbf_cuda.memory import available_memory
+from pbf_cuda.scene import SceneError, sanitize_name, scene_from_dict
 
 __all__ = ["FORMATS", "PARTICLE_ONLY", "FormatError", "ExportError", "particles_to_xarray", "run_to_xarray",
            "combine_solvers", "export_run", "run_info", "export_name"]
@@ -71,7 +74,6 @@ class FormatError(ValueError):
 
 
 def _scene_from_identity(identity: Mapping):
-    from pbf_cuda.scene import SceneError, sanitize_name, scene_from_dict
     data = json.loads(json.dumps(identity["scene"]))
     head = data.get("scene") if isinstance(data.get("scene"), dict) else {}
     head["name"] = sanitize_name(head.get("name", "scene"))      # runs stored before names were restricted
@@ -125,7 +127,6 @@ def run_info(run_dir: str | Path, unverified: bool = False) -> dict:
 
 def export_name(info: dict) -> str:
     """The export's file name stem: <solver>-<scene name>, the name reduced to letters, digits and _ . -."""
-    from pbf_cuda.scene import sanitize_name
     return f"{info['solver']}-{sanitize_name(info['identity']['scene'].get('scene', {}).get('name', 'scene'))}"
 
 
@@ -148,7 +149,7 @@ def _frames(info: dict):
 def run_to_xarray(run_dir: str | Path, resolution=None, like=None, unverified: bool = False, info: dict | None = None):
     """Every snapshot of a run as one Dataset with dimensions (time, x, y, z); ``step`` is a
     coordinate along time.  Particle runs are deposited (see :func:`particles_to_xarray`)."""
-    import xarray as xr
+    import xarray as xr  # io extra (xarray)
     info = info or run_info(run_dir, unverified)
     scene = _scene_from_identity(info["identity"])
     adapter = ADAPTERS[info["solver"]]
@@ -172,7 +173,7 @@ def combine_solvers(datasets: Mapping[str, object]):
 
     ``ds.cloud.sel(solver="particles") - ds.cloud.sel(solver="grid")`` is then the cell-by-cell
     difference.  Raises ValueError when the coordinates differ."""
-    import xarray as xr
+    import xarray as xr  # io extra (xarray)
     names = list(datasets)
     items = [datasets[n] for n in names]
     for other, name in zip(items[1:], names[1:]):
@@ -197,7 +198,7 @@ def _need_bytes(info: dict, fmt: str, scene, resolution) -> tuple[int, int]:
     sizes = [s if s is not None else p.lstat().st_size for p, s in info["sizes"].items()]
     if fmt in ("netcdf", "zarr"):
         if info["solver"] == "particles":
-            from bench.statistics import grid_for_scene
+            from bench.statistics import grid_for_scene  # harness extra (pandas, scipy)
             shape, _ = grid_for_scene(scene, resolution)
             grid = math.prod(int(n) for n in shape) * 8 * GRID_VARIABLES
         else:
@@ -208,7 +209,6 @@ def _need_bytes(info: dict, fmt: str, scene, resolution) -> tuple[int, int]:
 
 
 def _check_memory(need: int, resolution) -> None:
-    from pbf_cuda.memory import available_memory
     avail = available_memory("cpu")
     if avail is not None and need > MEMORY_SAFETY * avail:
         hint = f"--resolution {','.join(map(str, resolution))}" if resolution else "the export"
@@ -299,7 +299,6 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
                     fh.flush()
                     os.fsync(fh.fileno())
             else:
-                import warnings
                 with warnings.catch_warnings():      # zarr 3 notes that consolidated metadata is its own extension
                     warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
                     ds.to_zarr(stage, mode="w")
@@ -308,6 +307,5 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, res
 
 def load_series(pvd: str | Path) -> list:
     """The meshes of a .pvd series (pyvista), in time order."""
-    import pyvista as pv
-    from cloudpbf_io.export import read_pvd
+    import pyvista as pv  # viz extra (pyvista)
     return [pv.read(f) for _, f in read_pvd(pvd)]

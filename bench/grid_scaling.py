@@ -21,6 +21,7 @@ from typing import Annotated, Optional
 import typer
 
 from bench.cli_common import click, parse_list, parse_sizes, run_command, scene_arg
+from pbf_cuda.scene import load_scene
 
 COLUMNS = ("cells", "step_ms", "dtype", "device", "commit")
 ROOT = Path(__file__).resolve().parent.parent
@@ -38,7 +39,7 @@ def git_commit(cwd: str | Path = ROOT) -> str:
 
 
 def _platforms(requested):
-    import jax
+    import jax  # grid extra (jax)
     have = []
     for plat in ("cpu", "gpu"):
         try:
@@ -56,8 +57,8 @@ def _platforms(requested):
 
 
 def measure(scene, n: int, platform: str, dtype: str, steps: int, warmup: int) -> dict:
-    import jax
-    from grid_baseline import GridSimulation
+    import jax  # grid extra (jax)
+    from grid_baseline import GridSimulation  # grid extra (jax)
     sim = GridSimulation(scene, resolution=(n, n, n), dtype=dtype, device=platform, check_every=0)
     sim.warmup()
     if warmup:
@@ -98,7 +99,6 @@ def append_rows(path: Path, rows) -> None:
 def run_grid_scaling(sizes, steps: int = 20, warmup: int = 2, scene="growing", devices: str = "all", dtypes=None,
                      out="reports/latest/data/grid_scaling.csv", commit: str | None = None, echo=print) -> list[dict]:
     """Measure every (device, dtype, size) and append each row to `out` as it finishes."""
-    from pbf_cuda.scene import load_scene
     if steps < 1:
         raise ValueError("--steps must be >= 1")
     scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene

@@ -27,10 +27,13 @@ import functools
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+
+from cloudpbf_io.files import atomic_path
 
 __all__ = [
     "RenderUnavailable",
@@ -61,7 +64,7 @@ def compact_particles(state: Mapping, threshold: float = CLOUD_THRESHOLD, clear_
 
 
 def _cloud_colormap():
-    from matplotlib.colors import LinearSegmentedColormap
+    from matplotlib.colors import LinearSegmentedColormap  # harness extra (matplotlib)
     return LinearSegmentedColormap.from_list("cloud", ["#6e7780", "#c9d0d6", "#ffffff"])
 
 
@@ -104,6 +107,7 @@ def rendering_status() -> tuple[bool, str]:
     if os.environ.get("CLOUDPBF_NO_RENDER", "") not in ("", "0"):
         return False, "disabled by CLOUDPBF_NO_RENDER"
     try:
+        # viz extra (pyvista)
         import pyvista  # noqa: F401
     except Exception as exc:  # pragma: no cover - depends on the install
         return False, f"pyvista is not installed ({exc}); pip install 'cloudpbf[viz]'"
@@ -145,7 +149,7 @@ def require_rendering() -> None:
 
 def _pyvista():
     require_rendering()
-    import pyvista as pv
+    import pyvista as pv  # viz extra (pyvista)
     pv.OFF_SCREEN = True
     return pv
 
@@ -349,7 +353,7 @@ def render_volume(grid_w, cell_size, out_png, origin=(0.0, 0.0, 0.0), threshold:
     size = dx * np.array(w.shape)
     shape = w.shape
     if upsample > 1 and w.max() > threshold:
-        from scipy.ndimage import zoom
+        from scipy.ndimage import zoom  # harness extra (scipy)
         w = np.clip(zoom(w, upsample, order=1, grid_mode=True, mode="nearest"), 0.0, None)
         dx = dx * np.array(shape) / np.array(w.shape)
     grid = pv.ImageData(dimensions=w.shape, spacing=tuple(dx), origin=tuple(org + dx / 2))
@@ -445,8 +449,7 @@ def render_animation(frames: Sequence[tuple[float, Mapping]], scene, out_gif, ou
     """The clouds developing: one particle render per (time s, state) frame, written as a looping GIF
     (`frame_ms` per frame, the last held three times as long) and, with `out_strip`, as one PNG strip
     of the frames side by side, each `strip_width` px wide, labelled with its time."""
-    from PIL import Image
-    import tempfile
+    from PIL import Image  # harness extra (PIL)
     if not frames:
         raise RenderUnavailable("no stored states to animate")
     out_gif = Path(out_gif)
@@ -463,7 +466,6 @@ def render_animation(frames: Sequence[tuple[float, Mapping]], scene, out_gif, ou
     out_gif.parent.mkdir(parents=True, exist_ok=True)
     palette = [im.quantize(colors=128, method=Image.Quantize.MEDIANCUT) for im in images]
     durations = [frame_ms] * (len(palette) - 1) + [3 * frame_ms]
-    from cloudpbf_io.files import atomic_path
     with atomic_path(out_gif) as tmp_gif:
         palette[0].save(tmp_gif, format="GIF", save_all=True, append_images=palette[1:], duration=durations,
                         loop=0)

@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from pbf_cuda.kernels import _core
 from pbf_cuda.scene import Scene
 
 FLOAT, UINT, FLOAT4 = 4, 4, 16       # bytes: a float, a uint32, a float4 (x, y, z, mass)
@@ -75,7 +76,6 @@ def step_bytes(scene: Scene) -> int:
 def copy_bandwidth(backend: str, nbytes: int = 1 << 30, repeats: int = 20) -> float | None:
     """Copy bandwidth of the backend's device in bytes/s (read + written); None where it cannot be measured."""
     if backend == "cuda":
-        from pbf_cuda.kernels import _core
         measure = getattr(_core(), "cuda_copy_bandwidth", None)
         value = measure(nbytes, repeats) if measure else 0.0
         return value or None

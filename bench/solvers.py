@@ -5,6 +5,7 @@ points (ParaView series) and a gridded Dataset (NetCDF / zarr).  ADAPTERS is the
 and bench.export look them up in."""
 from __future__ import annotations
 
+import gc
 import json
 import math
 from pathlib import Path
@@ -12,7 +13,11 @@ from typing import Mapping
 
 import numpy as np
 
+from cloudpbf_io.export import fields_to_xarray
+from pbf_cuda.memory import available_memory, check_memory, cuda_memory_in_use
 from pbf_cuda.protocol import InstabilityError
+from pbf_cuda.scene import SceneError
+from pbf_cuda.simulation import Simulation, _resolve_backend, available_backends, seeded_scene
 
 __all__ = ["ADAPTERS", "SOLVERS", "SolverAdapter", "ParticleAdapter", "GridAdapter", "InstabilityError", "flatten",
            "particles_to_xarray"]
@@ -123,31 +128,25 @@ class ParticleAdapter(SolverAdapter):
     def resolve_backend(backend: str) -> str:
         if backend != "auto":
             return backend
-        from pbf_cuda.simulation import available_backends
         return "cuda" if "cuda" in available_backends() else "cpu"
 
     @staticmethod
     def preflight(spec) -> None:
         """Refuse before anything is made: the backend must exist (RuntimeError), the run must fit in
         memory (pbf_cuda.SceneError naming the particle count and the memory needed)."""
-        from pbf_cuda.memory import check_memory
-        from pbf_cuda.simulation import _resolve_backend, seeded_scene
         check_memory(seeded_scene(spec.scene, spec.seed), _resolve_backend(spec.backend))
 
     @staticmethod
     def expected_scene(spec):
         """The scene a checkpoint of this spec must hold."""
-        from pbf_cuda.simulation import seeded_scene
         return seeded_scene(spec.scene, spec.seed)
 
     @staticmethod
     def create(spec):
-        from pbf_cuda.simulation import Simulation
         return Simulation(spec.scene, backend=spec.backend, seed=spec.seed)
 
     @staticmethod
     def load(path: Path, spec):
-        from pbf_cuda.simulation import Simulation
         return Simulation.load(path, backend=ParticleAdapter.resolve_backend(spec.backend))
 
     @staticmethod
@@ -160,8 +159,6 @@ class ParticleAdapter(SolverAdapter):
         its temporary storage is cached, so after the run this is its peak."""
         if ParticleAdapter.resolve_backend(spec.backend) != "cuda":
             return None
-        import gc
-        from pbf_cuda.memory import cuda_memory_in_use
         gc.collect()                   # a previous run's arrays are freed now, not during this run
         return cuda_memory_in_use()
 
@@ -193,7 +190,7 @@ class ParticleAdapter(SolverAdapter):
     def diagnostics(sim, spec, state: dict):
         """(diagnostics row, vertical profiles) of a particle state, deposited once on the statistics grid.
         Plain-fluid scenes have no cloud statistics: their rows hold the solver's stats() only."""
-        from bench import statistics
+        from bench import statistics  # harness extra (pandas, scipy)
         scene = sim.scene
         if not scene.thermodynamics:
             return {}, None
@@ -231,15 +228,13 @@ class GridAdapter(SolverAdapter):
     def resolve_backend(backend: str) -> str:
         if backend != "auto":
             return backend
-        import jax
+        import jax  # grid extra (jax)
         return "cuda" if jax.default_backend() == "gpu" else "cpu"
 
     @staticmethod
     def preflight(spec) -> None:
         """Refuse a grid that cannot fit in host memory (CPU runs) before anything is allocated."""
-        from grid_baseline.simulation import grid_shape
-        from pbf_cuda.memory import available_memory
-        from pbf_cuda.scene import SceneError
+        from grid_baseline.simulation import grid_shape  # grid extra (jax)
         shape = grid_shape(spec.scene, spec.cells_per_spacing, spec.resolution)
         cells = math.prod(shape)
         need = cells * GRID_BYTES_PER_CELL
@@ -257,7 +252,7 @@ class GridAdapter(SolverAdapter):
 
     @staticmethod
     def create(spec):
-        from grid_baseline import GridSimulation
+        from grid_baseline import GridSimulation  # grid extra (jax)
         sim = GridSimulation(spec.scene, seed=spec.seed, cells_per_spacing=spec.cells_per_spacing,
                              resolution=spec.resolution, dtype=spec.dtype, device=GridAdapter._device(spec))
         sim.warmup()
@@ -269,7 +264,7 @@ class GridAdapter(SolverAdapter):
 
     @staticmethod
     def load(path: Path, spec):
-        from grid_baseline import GridSimulation
+        from grid_baseline import GridSimulation  # grid extra (jax)
         sim = GridSimulation.load(path, device=GridAdapter._device(spec), dtype=spec.dtype)
         sim.warmup()
         return sim
@@ -289,7 +284,7 @@ class GridAdapter(SolverAdapter):
     @staticmethod
     def diagnostics(sim, spec, state: dict):
         """(diagnostics row, vertical profiles) of the grid's fields."""
-        from bench import statistics
+        from bench import statistics  # harness extra (pandas, scipy)
         return statistics.grid_diagnostics(state, sim.scene), statistics.grid_profiles(state, sim.scene)
 
     @staticmethod
@@ -310,7 +305,6 @@ class GridAdapter(SolverAdapter):
     @staticmethod
     def snapshot_dataset(snap: dict, scene, resolution=None, like=None):
         """The grid's own fields (resolution and like do not apply: the cells are the grid's)."""
-        from cloudpbf_io.export import fields_to_xarray
         fields = {k: v for k, v in snap.items() if k not in ("step", "time_s", "origin")}
         return fields_to_xarray(fields, time=float(snap.get("time_s", 0.0)), step=int(snap.get("step", 0)), attrs={
             "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": scene.name})
@@ -325,8 +319,7 @@ def particles_to_xarray(state: Mapping[str, np.ndarray], scene, resolution=None,
     resolution)`` (default: one cell per particle spacing, the grid baseline's default).  Variables:
     ``density`` (kg/m^3) and the Shepard averages of temperature, vapor, cloud and velocity_x/y/z,
     with the CF attributes of :data:`cloudpbf_io.export.FIELD_ATTRS`."""
-    from bench import statistics
-    from cloudpbf_io.export import fields_to_xarray
+    from bench import statistics  # harness extra (pandas, scipy)
     origin = np.zeros(3)
     if like is not None:
         shape = tuple(int(like.sizes[k]) for k in "xyz")

@@ -31,6 +31,7 @@ from scipy.sparse.csgraph import connected_components
 
 from bench.deposition import (DEFAULT_PERIODIC, checked_vector3, deposit, deposit_state, grid_for_scene,
                               poly6)
+from pbf_cuda.initial_state import lattice_mass, lattice_spacings
 
 __all__ = [
     "CLOUD_THRESHOLD",
@@ -295,7 +296,6 @@ def heated_mass_fraction(state: Mapping[str, np.ndarray], scene) -> float:
     that slab below H: min(1, max(0, (H - y + d / 2) / d)).  A lattice at rest reads m_0 / (rho0 d_x d_y d_z)
     at any spacing and H (0.990 at 100 m in `growing`: the lattice mass is set so that the SPH density is
     rho0)."""
-    from pbf_cuda.initial_state import lattice_mass, lattice_spacings
     y = np.asarray(state["position"], dtype=np.float64)[:, 1]
     m = np.asarray(state["mass"], dtype=np.float64)
     depth = float(scene.atmosphere.heating_depth)

@@ -10,6 +10,6 @@ __all__ = ["build_report", "report_sections"]
 
 def __getattr__(name):
     if name in __all__:
-        from . import build
+        from . import build  # harness extra (matplotlib, pandas)
         return getattr(build, name)
     raise AttributeError(name)

@@ -37,6 +37,7 @@ from .catalogue import Catalogue, ReportSection
 from .common import Block, Inputs, Provenance, Section, _missing, _table, short_commit
 from .glance import summary
 from .images import place_images
+from cloudpbf_io.files import atomic_write_text
 
 __all__ = ["build_report", "report_sections"]
 
@@ -186,6 +187,5 @@ def build_report(out_dir, catalogue: Catalogue) -> Path:
         Markup=jinja2.utils.markupsafe.Markup,
     )
     target = out / "index.html"
-    from cloudpbf_io.files import atomic_write_text
     atomic_write_text(target, page)
     return target

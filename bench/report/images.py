@@ -11,6 +11,8 @@ from pathlib import Path
 
 from PIL import Image, ImageSequence
 
+from cloudpbf_io.files import atomic_write_bytes
+
 MAX_WIDTH = 1000        # px: the widest figure a section shows at 1366 px
 EMBED_LIMIT = 120_000   # bytes: a larger figure is shrunk for the page
 GIF_WIDTH = 480         # px: the embedded animation's frames
@@ -67,7 +69,6 @@ def place_images(sections, out: Path) -> None:
     """Shrink every image block of `sections` that is too large for the page and set its ``full`` link: the
     file it came from when under `out`, else a file written to OUT/figures (whose stale files from earlier
     builds are removed)."""
-    from cloudpbf_io.files import atomic_write_bytes
     out = Path(out).resolve()
     folder = out / FIGURES
     written = set()

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import base64
 import io
+import textwrap
+from pathlib import Path
 from typing import Sequence
 
 import matplotlib
@@ -40,7 +42,6 @@ def to_data_uri(fig) -> str:
 
 def save_png(fig, path, dpi: int = 110):
     """Write a figure to a PNG file (parent folders made), close it, return the path."""
-    from pathlib import Path
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
@@ -469,7 +470,6 @@ def stability_map_2d(df: pd.DataFrame, bound: str, energy_limit: float | None = 
     if image is not None:
         bar = fig.colorbar(image, ax=axes[0].tolist(), shrink=0.9)
         bar.set_label("largest mean density error |rho/rho0 - 1| over the steps")
-    import textwrap
     fig.suptitle(textwrap.fill(f"inside the black line: usable ({bound}); red X: blew up", 110), fontsize=9)
     return to_data_uri(fig)
 

@@ -172,7 +172,7 @@ def _locked(path: Path) -> bool:
     if entry_kind(path / ".lock") != "file":
         return False
     try:
-        from filelock import FileLock, Timeout
+        from filelock import FileLock, Timeout  # harness extra (filelock)
     except ImportError:
         return False
     lock = FileLock(str(path / ".lock"), timeout=0)

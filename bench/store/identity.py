@@ -56,7 +56,7 @@ def default_root() -> Path:
         return Path(env)
     if is_checkout():
         return REPO_ROOT / "runs"
-    import platformdirs
+    import platformdirs  # harness extra (platformdirs)
     return Path(platformdirs.user_cache_dir("cloudpbf", appauthor=False)) / "runs"
 
 

@@ -4,6 +4,9 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
+from bench.store.manifest import quarantine
+from bench.store.safe import entry_kind
+
 __all__ = ["locked"]
 
 
@@ -11,15 +14,13 @@ __all__ = ["locked"]
 def locked(directory: Path):
     """Exclusive lock on the run directory, so two processes never run the same spec at once.  A `.lock` that
     is not a regular file (a folder, a link) is moved to the quarantine first, never followed."""
-    from bench.store.manifest import quarantine
-    from bench.store.safe import entry_kind
     kind = entry_kind(directory / ".lock")
     if kind not in (None, "file"):
         quarantine(directory, [".lock"], f".lock is a {kind}, not a lock file")
     try:
         from filelock import FileLock  # portable: fcntl on POSIX, msvcrt on Windows (the harness extra)
     except ImportError:                # a bare POSIX machine without it (e.g. a GPU node): plain flock
-        import fcntl
+        import fcntl  # POSIX flock: the fallback without the harness extra (filelock)
         with open(directory / ".lock", "a+") as fh:
             fcntl.flock(fh, fcntl.LOCK_EX)
             try:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.store.manifest import read_result
+
 __all__ = ["RunResult"]
 
 
@@ -19,7 +21,6 @@ class RunResult:
     @classmethod
     def load(cls, path: str | Path, cached: bool = False) -> "RunResult":
         """The result in `path` (not verified: see verify_run and cached_result)."""
-        from bench.store.manifest import read_result
         path = Path(path)
         info = read_result(path)
         if not isinstance(info, dict):
@@ -35,22 +36,22 @@ class RunResult:
         raise AttributeError(name)
 
     def stats(self):
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         p = self.path / "stats.parquet"
         return pd.read_parquet(p) if p.exists() else pd.DataFrame()
 
     def profiles(self):
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         p = self.path / "profiles.parquet"
         return pd.read_parquet(p) if p.exists() else pd.DataFrame()
 
     def steps_table(self):
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         p = self.path / "steps.csv"
         return pd.read_csv(p) if p.exists() else pd.DataFrame()
 
     def timings(self) -> dict[str, dict]:
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         p = self.path / "timings.csv"
         if not p.exists():
             return {}

@@ -84,7 +84,7 @@ def _netcdf_marker(path: Path) -> dict | None:
     with open(path, "rb") as fh:                       # an HDF5 file (NetCDF-4) starts with this signature
         if fh.read(8) != b"\x89HDF\r\n\x1a\n":
             return None
-    import h5py
+    import h5py  # io extra (h5py)
     with h5py.File(path, "r") as f:
         raw = f.attrs.get(NETCDF_ATTR)
     if raw is None:

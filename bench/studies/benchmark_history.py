@@ -26,7 +26,7 @@ import typer
 from bench.report import plots
 from bench.report.common import Inputs, Section, _missing, _table
 from bench import runs
-from bench.cli_common import DEFAULT_OUT, OutOpt
+from bench.cli_common import DEFAULT_OUT, OutOpt, click
 from bench.studies.registry import ReportSection, Study, register
 
 OUTPUT = "benchmark_history.csv"
@@ -121,7 +121,6 @@ def benchmark_history_command(
     out: OutOpt = DEFAULT_OUT,
 ) -> None:
     """The solver's step time across commits from the kept asv results (benchmark_history.csv)."""
-    from bench.cli_common import click
     try:
         frame = benchmark_history(results, factor)
     except HistoryError as exc:

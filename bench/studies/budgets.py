@@ -23,8 +23,12 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 
+from bench import runs
 from bench.cli_common import Backend, BackendOpt, QuietOpt, check_backend, run_command, scene_arg
+from bench.environment import commit as git_commit
 from bench.studies.registry import Study, register
+from bench.studies.scales import scale_scene
+from pbf_cuda import Simulation
 from pbf_cuda.scene import load_scene
 
 COLUMNS = ("solver", "time_s", "step", "mean_temperature", "heat_source_total", "heat_latent_total",
@@ -36,12 +40,9 @@ HEAT_TERMS = ("source", "latent", "adiabatic", "smoothing", "numerical")
 def run_budgets(scene="growing", particles: int | None = 8000, steps: int | None = None, every: int = 10,
                 seed: int = 0, backend: str = "cpu", quiet: bool = False):
     """Both solvers' budget rows (a DataFrame with COLUMNS)."""
-    import pandas as pd
+    import pandas as pd  # harness extra (pandas)
 
-    from bench.environment import commit as git_commit
-    from bench.studies.scales import scale_scene
-    from grid_baseline import GridSimulation
-    from pbf_cuda import Simulation
+    from grid_baseline import GridSimulation  # grid extra (jax)
 
     scene = load_scene(scene) if isinstance(scene, str) else scene
     scene = scale_scene(scene, particles)
@@ -73,9 +74,9 @@ def run_budgets(scene="growing", particles: int | None = 8000, steps: int | None
 
 def plot_budgets(frame, path):
     """Cumulative warming per process (K) against time, particles solid, grid dashed."""
-    import matplotlib
+    import matplotlib  # harness extra (matplotlib)
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # harness extra (matplotlib)
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for solver, ls in (("particles", "-"), ("grid", "--")):
@@ -92,7 +93,7 @@ def plot_budgets(frame, path):
     ax.set_ylabel("mass-weighted mean warming (K)")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    from bench.report.plots import save_png
+    from bench.report.plots import save_png  # harness extra (matplotlib, pandas)
     return save_png(fig, path)
 
 
@@ -113,7 +114,6 @@ def budgets_command(
     scene_arg(scene, param="--scene")
     check_backend(backend)
     frame = run_budgets(scene, particles or None, steps, every, seed, backend.value, quiet)
-    from bench import runs
     runs.write_csv(frame, out)
     typer.echo(f"wrote {out}")
     if plot is not None:

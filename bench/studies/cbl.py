@@ -41,8 +41,12 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 
+from bench import runs
 from bench.cli_common import Backend, BackendOpt, QuietOpt, check_backend, parse_list, run_command, scene_arg
+from bench.environment import commit as git_commit
 from bench.studies.registry import Study, register
+from pbf_cuda import Simulation
+from pbf_cuda.initial_state import lattice_spacings
 from pbf_cuda.scene import Scene, load_scene
 
 PROFILE_COLUMNS = ("time_s", "z", "theta_particles", "theta_grid", "theta_initial", "h_theory", "h_particles",
@@ -63,8 +67,7 @@ def heated_depth(scene: Scene) -> float:
 
 def mean_heating_pattern(scene: Scene) -> float:
     """mean over the lattice columns (x, z) of max(0, 1 + amplitude * noise) (eq. 5)."""
-    from grid_baseline.noise import heating_pattern
-    from pbf_cuda.initial_state import lattice_spacings
+    from grid_baseline.noise import heating_pattern  # grid extra (jax)
     a = scene.atmosphere
     ds = lattice_spacings(scene)
     xs = (np.arange(int(round(scene.domain.size[0] / ds[0]))) + 0.5) * ds[0]
@@ -86,7 +89,6 @@ def encroachment_depth(scene: Scene, t: float) -> float:
 
 def bin_edges(scene: Scene) -> np.ndarray:
     """Height bins of one lattice spacing (the grid's cells), m."""
-    from pbf_cuda.initial_state import lattice_spacings
     d = float(lattice_spacings(scene)[1])
     return np.arange(int(round(scene.domain.size[1] / d)) + 1) * d
 
@@ -129,11 +131,9 @@ def mixed_layer_depth(z: np.ndarray, theta: np.ndarray, scene: Scene) -> tuple[f
 def run_profiles(scene: Scene | str = "dry_cbl", times=(200.0, 400.0, 600.0), seed: int = 0, backend: str = "cpu",
                  quiet: bool = False) -> "pandas.DataFrame":  # noqa: F821
     """Run both solvers to each time (s); one row per (time, height bin) with both mean profiles."""
-    import pandas as pd
+    import pandas as pd  # harness extra (pandas)
 
-    from bench.environment import commit as git_commit
-    from grid_baseline import GridSimulation
-    from pbf_cuda import Simulation
+    from grid_baseline import GridSimulation  # grid extra (jax)
 
     scene = load_scene(scene) if isinstance(scene, str) else scene
     edges = bin_edges(scene)
@@ -168,9 +168,9 @@ def run_profiles(scene: Scene | str = "dry_cbl", times=(200.0, 400.0, 600.0), se
 
 def plot_profiles(frame, path: str | Path) -> Path:
     """One panel per time: both solvers' mean theta(z), the initial profile, and h (theory, each solver)."""
-    import matplotlib
+    import matplotlib  # harness extra (matplotlib)
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # harness extra (matplotlib)
 
     times = sorted(frame["time_s"].unique())
     fig, axes = plt.subplots(1, len(times), figsize=(3.2 * len(times), 4.2), sharey=True, squeeze=False)
@@ -191,7 +191,7 @@ def plot_profiles(frame, path: str | Path) -> Path:
     axes[0][0].set_ylabel("height (m)")
     axes[0][0].legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    from bench.report.plots import save_png
+    from bench.report.plots import save_png  # harness extra (matplotlib, pandas)
     return save_png(fig, path)
 
 
@@ -208,7 +208,7 @@ def cbl_command(
 ) -> None:
     """Dry convective boundary layer: both solvers' mixed-layer depth against encroachment (cbl_profiles.csv)."""
     if from_csv:
-        import pandas as pd
+        import pandas as pd  # harness extra (pandas)
         if not out.is_file():
             raise typer.BadParameter(f"'{out}': no such CSV to draw", param_hint="'--out'")
         frame = pd.read_csv(out)
@@ -217,7 +217,6 @@ def cbl_command(
         check_backend(backend)
         at = parse_list(times, "--times", float, 0.0, 1e7, example="200,400,600")
         frame = run_profiles(scene, at, seed, backend.value, quiet)
-        from bench import runs
         runs.write_csv(frame, out)
         typer.echo(f"wrote {out}")
     if plot is not None:

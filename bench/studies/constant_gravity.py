@@ -87,7 +87,6 @@ def constant_gravity_command(
     runs_root: RunsRootOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """`growing` with a constant gravity added, beside the shipped `cycling` (docs/physics.md, Deviations from the paper)."""
-    import pandas as pd
     values = parse_list(gravity, "--gravity", float, 1e-9, 100.0, "0.1,0.3,1.0")
     frame = constant_gravity(values, particles, steps, backend=backend.value, runs_root=runs_root, quiet=quiet)
     runs.write_csv(frame, out)

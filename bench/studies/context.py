@@ -31,6 +31,7 @@ from bench.solvers import ParticleAdapter
 from bench.store.identity import REPO_ROOT
 from bench import environment
 from bench.studies.scales import Scale
+from cloudpbf_io.progress import progress_bar as tqdm
 
 __all__ = ["StudyContext", "StudyError", "GpuError", "INLINE", "parse_gpus", "select_gpus", "visible_gpus",
            "cuda_cluster"]
@@ -97,7 +98,7 @@ def cuda_cluster(devices: list[str], env: dict):
     """dask-cuda's LocalCUDACluster with one single-threaded worker per device (the default factory
     of StudyContext.cuda_cluster_factory)."""
     try:
-        from dask_cuda import LocalCUDACluster
+        from dask_cuda import LocalCUDACluster  # multigpu extra (dask_cuda)
     except ImportError:
         raise GpuError("needs dask-cuda, which is not installed: pip install 'cloudpbf[multigpu]'") from None
     return LocalCUDACluster(CUDA_VISIBLE_DEVICES=",".join(devices), n_workers=len(devices), threads_per_worker=1,
@@ -155,6 +156,7 @@ def _worker_env(threads: int) -> dict:
 
 def local_cluster(n_workers: int, gpus: list[str] | None = None):
     """A dask cluster on this machine: `n_workers` processes, or one per GPU index in `gpus`."""
+    # harness extra (distributed)
     from distributed import LocalCluster, Nanny, Scheduler, SpecCluster
     cores = os.cpu_count() or 1
     if gpus:
@@ -229,7 +231,6 @@ class StudyContext:
 
     def run_parallel(self, specs: list[runs.RunSpec], label: str) -> list[runs.RunResult]:
         """Run the specs the cache lacks on the dask cluster; results in the order of `specs`."""
-        from cloudpbf_io.progress import progress_bar as tqdm
         keys = [spec.key() for spec in specs]
         unique = dict(zip(keys, specs))
         done = {}
@@ -267,7 +268,7 @@ class StudyContext:
                 except Exception as exc:
                     yield key, exc
             return
-        from distributed import as_completed
+        from distributed import as_completed  # harness extra (distributed)
         client = self.client()
         futures = {client.submit(runs.execute_summary, spec, root, pure=False, key=f"{label}-{spec.solver}-{key[:16]}"): key
                    for key, spec in specs.items()}
@@ -290,6 +291,7 @@ class StudyContext:
         self.gpu_devices()
         if self.cuda_cluster_factory is None:
             try:
+                # multigpu extra (dask_cuda)
                 import dask_cuda  # noqa: F401
             except ImportError:
                 raise GpuError(f"{self.gpus}: needs dask-cuda, which is not installed: "
@@ -337,7 +339,7 @@ class StudyContext:
                 raise SchedulerError("a dask cluster (--scheduler ADDRESS or --gpus) needs dask's distributed, "
                                  "which is not installed (a dependency of cloudpbf: pip install distributed), or run "
                                  "with --scheduler inline")
-            from distributed import Client
+            from distributed import Client  # harness extra (distributed)
             if self.scheduler:
                 # dask moves pickles between the client, the scheduler and the workers: a remote
                 # scheduler must be one you trust (see docs/harness.md).

@@ -24,7 +24,7 @@ particles, a 12 x 16 x 12 grid), dt = 8 s and 2400 s, a few minutes on two cores
 from __future__ import annotations
 
 import sys
-
+from pathlib import Path
 from typing import Annotated
 
 import numpy as np
@@ -34,6 +34,8 @@ import typer
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, run_command, study_context)
+from bench.render import compact_particles, render_or_note, render_particles, render_volume
+from bench.store.result import RunResult
 from bench.studies.registry import Study, register
 from bench.statistics import grid_for_scene
 from bench.studies.compare import SOLVER_OF_MODE, scene_pair
@@ -181,9 +183,6 @@ def render_cycle_states(states_dir, out_dir, scene_name: str = "cycling", cpu: b
     (render_volume).  Writes OUT/cycling_<mode>_<peak|min>.png; returns the paths written (none
     where pyvista cannot render: bench.render.render_or_note leaves a note instead).  ``cpu``: the states
     come from the CPU cycle (:func:`cpu_scene`), not the scene files."""
-    from pathlib import Path
-    from bench.render import render_or_note, render_particles, render_volume
-    from bench.studies.compare import scene_pair
     base, adaptive = scene_pair(scene_name)
     if cpu:
         base, adaptive = cpu_scene(base), cpu_scene(adaptive)
@@ -243,9 +242,6 @@ def cycle_states(cycles: pd.DataFrame, budgets: pd.DataFrame, out_dir, seed: int
     (the stored snapshots nearest peak_s and min_s of :func:`cycle_budgets`), for renders: particles keep
     every cloudy particle and `clear_fraction` of the clear ones (position, cloud, level); grid runs keep
     the cloud-water field.  Writes OUT/cycle_<mode>_<peak|min>.npz; returns the paths written."""
-    from pathlib import Path
-    from bench.render import compact_particles
-    from bench.store.result import RunResult
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []

@@ -27,11 +27,15 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated, Optional
 
+import pandas as pd
 import typer
 
+from bench import runs
+from bench.environment import commit, cpu_name, gpu_names
 from bench.report.common import Inputs, Section, _missing, _table
-from bench.cli_common import run_command
+from bench.cli_common import parse_list, run_command
 from bench.studies.registry import ReportSection, Study, register
+from pbf_cuda import available_backends
 
 SPLISH_SCENE = {
     "Configuration": {"particleRadius": 0.011, "simulationMethod": 2, "gravitation": [0, -9.81, 0],
@@ -106,9 +110,6 @@ def run_peers(threads: list[int], repeats: int = 2, splish_python: str | None = 
               echo=print):
     """The timing rows (a DataFrame): SPlisHSPlasH where `splish_python` has it, cloudpbf on the CPU at each
     thread count and on the GPU where one exists."""
-    import pandas as pd
-    from pbf_cuda import available_backends
-    from bench.environment import commit, cpu_name, gpu_names
     python = splish_python or sys.executable
     box = splish_available(python)
     if box is None:
@@ -180,8 +181,6 @@ def peers_command(
     out: Annotated[Path, typer.Option("--out", help="CSV to write")] = Path("reports/latest/data/cpu_peer.csv"),
 ) -> None:
     """SPlisHSPlasH's PBF dam break against cloudpbf's on the same geometry (cpu_peer.csv)."""
-    from bench import runs
-    from bench.cli_common import parse_list
     counts = parse_list(threads, "--threads", int, 1, 1024, "2,16") if threads else sorted({2, os.cpu_count() or 2})
     if splish_python is not None and shutil.which(splish_python) is None and not Path(splish_python).is_file():
         raise typer.BadParameter(f"'{splish_python}': no such Python", param_hint="'--splish-python'")

@@ -17,6 +17,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from bench.studies.registry import studies
+from pbf_cuda import simulation
 from pbf_cuda.scene import Scene
 
 SCALE_NAMES = ("auto", "smoke", "cpu", "gpu")
@@ -52,7 +54,6 @@ class _ScaleTable(Mapping):
 
     def _build(self) -> dict:
         if self._table is None:
-            from bench.studies.registry import studies
             declared = {}
             for study in studies():
                 for name, values in study.scale.items():
@@ -85,8 +86,7 @@ def resolve_scale(name: str) -> Scale:
     if name not in SCALE_NAMES:
         raise ValueError(f"scale = {name!r}: allowed {', '.join(SCALE_NAMES)}")
     if name == "auto":
-        from pbf_cuda.simulation import available_backends
-        name = "gpu" if "cuda" in available_backends() else AUTO_WITHOUT_GPU
+        name = "gpu" if "cuda" in simulation.available_backends() else AUTO_WITHOUT_GPU
     return SCALES[name]
 
 

@@ -18,6 +18,7 @@ costs nothing.  For the grid alone: ``cloudpbf grid-scaling``.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -25,6 +26,7 @@ from typing import Annotated, Optional
 import pandas as pd
 import typer
 
+from bench.grid_scaling import measure
 from bench.report import plots
 from bench.report.common import Inputs, Section, _missing, _provenance, _table
 from bench import environment, roofline, runs
@@ -79,8 +81,7 @@ def pbf_scaling(sizes, backend: str = "auto", runs_root=None, scene_name: str = 
 def grid_scaling(sizes, scene_name: str = SCENE, dtypes=None, timing_steps: int = 10) -> pd.DataFrame:
     """One measurement per n^3 grid and dtype on jax's default device, by bench.grid_scaling.measure
     (compiled first, WARMUP_STEPS untimed steps, then `timing_steps`); a DataFrame with GRID_COLUMNS first."""
-    import jax
-    from bench.grid_scaling import measure
+    import jax  # grid extra (jax)
     platform = jax.default_backend()
     dtypes = dtypes or (("float64",) if platform == "cpu" else ("float32",))   # each solver's default precision
     scene = load_scene(scene_name)
@@ -123,7 +124,6 @@ def scaling_command(
     backend: BackendOpt = Backend.auto, quiet: QuietOpt = False,
 ) -> None:
     """ms per step against particle count (pbf_scaling.csv) and grid cells (grid_scaling.csv)."""
-    import dataclasses
     particle_sizes = parse_sizes(sizes, "--sizes", 100)
     cell_sizes = parse_sizes(grid_sizes, "--grid-sizes", 2)
     with study_context(out, runs_root, scale, backend, None, None, quiet) as ctx:

@@ -39,6 +39,8 @@ the usable bound in words).
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import typer
@@ -279,7 +281,6 @@ def stress_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, sca
                    quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
     """Stability map: dt, iterations, heating rate and alpha*dt, dt x iterations and dt x heating rate; the
     largest stable and the largest usable dt."""
-    import json
     with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_stress(ctx)

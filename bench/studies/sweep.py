@@ -41,6 +41,7 @@ from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
+from bench.report.inference import describes_no_difference, ratio_ci
 from bench.statistics import cloudy_period_means, grid_for_scene
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
@@ -165,7 +166,6 @@ def speedup_summary(speedups) -> dict:
     run's error): their geometric mean with its 95% t-interval on the logarithms (bench.report.inference.ratio_ci),
     and "no difference measured" where the interval holds 1 or one comparison leaves none. Each speed-up is a
     single wall-clock ratio of two runs, so the interval is what separates a difference from run-to-run noise."""
-    from bench.report.inference import describes_no_difference, ratio_ci
     speedups = [float(v) for v in speedups]
     ci = ratio_ci(speedups)
     listed = ", ".join(f"{v:.2f}x" for v in speedups)
@@ -235,7 +235,6 @@ def sweep_command(out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scal
                   backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
                   quiet: QuietOpt = False, gpus: GpusOpt = None) -> None:
     """Run time against error (spacing, iterations, split threshold, grid cells) and the Pareto front."""
-    import json
     with study_context(out, runs_root, scale, backend, workers, scheduler, quiet, gpus) as ctx:
         with refusals():
             frame = run_sweep(ctx)

@@ -92,6 +92,8 @@ from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 # the package's names: its design (design.py) and analysis (analysis.py)
+from bench.render import compact_particles, render_or_note, render_particles
+from bench.store.result import RunResult
 from bench.studies.adaptive_pareto.analysis import (add_verdict_columns, aligned_signatures, analyse,
                                                     bootstrap_speedups, build_verdict, errors, mean_of_rows,
                                                     mean_signature, pbf_cost_at_count, rebuild_verdict,
@@ -160,9 +162,6 @@ def render_configs(per_config: pd.DataFrame, verdict: dict) -> list[str]:
 def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict, out_dir, seed: int = 0) -> list:
     """Compact final states (every cloudy particle, a tenth of the clear ones; position, cloud, level) of seed
     `seed`'s run of each of :func:`render_configs`, for renders where pyvista is: OUT/pareto_<config>.npz."""
-    from pathlib import Path
-    from bench.render import compact_particles
-    from bench.store.result import RunResult
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     kinds = dict(zip(per_config["config"], per_config["kind"]))
@@ -191,8 +190,6 @@ def pareto_states(per_run: pd.DataFrame, per_config: pd.DataFrame, verdict: dict
 def render_pareto_states(states_dir, out_dir, scene_name: str) -> list:
     """Render the compact states of :func:`pareto_states` as cloud points, one PNG per configuration
     (OUT/pareto_<scene>_<config>.png); none where pyvista cannot render (a note is left instead)."""
-    from pathlib import Path
-    from bench.render import render_or_note, render_particles
     written = []
     for path in sorted(Path(states_dir).glob("pareto_*.npz")):
         with np.load(path) as z:

@@ -32,6 +32,8 @@ reads) and ``_verdict.json``, with device and commit; ``--estimate`` prints the 
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -291,7 +293,6 @@ def run_series(result, times: np.ndarray) -> dict | None:
 
 
 def meta_frame(study: list[Setting]) -> pd.DataFrame:
-    import dataclasses
     return pd.DataFrame([dataclasses.asdict(s) for s in study]).rename(columns={"name": "setting"})
 
 
@@ -342,7 +343,6 @@ def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, repli
 
 def rebuild(data: Path, scene_name: str = "growing", replicates: int = BOOTSTRAP_REPLICATES) -> dict:
     """The verdict again from the study's CSVs in `data` (nothing run); device and commit those of the runs."""
-    import json
     sfx = suffix(scene_name)
     paths = {k: Path(data) / f"time_to_solution{k}{sfx}.csv" for k in ("", "_runs", "_series")}
     for p in paths.values():

@@ -6,8 +6,10 @@ from __future__ import annotations
 import json
 import math
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
+from matplotlib.ticker import FormatStrFormatter
 
 from bench.report import glance_plots as gp
 from bench.report import plots
@@ -40,7 +42,6 @@ def _read(inp: Inputs, scene: str):
 def tts_plot(frame: pd.DataFrame, verdict: dict | None = None) -> str:
     """Error against wall time per simulated second: one marker per setting (5-95% error bars where the seeds
     were resampled), the front as a line, today's defaults and the reference's absence marked."""
-    import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     df = frame[frame["group"] != "reference"].copy()
     for col in ("wall_per_sim_s", "error", "error_p05", "error_p95"):
@@ -76,7 +77,6 @@ def tts_plot(frame: pd.DataFrame, verdict: dict | None = None) -> str:
     if verdict and verdict.get("noise_floor") is not None:
         ax.axhline(float(verdict["noise_floor"]), color="grey", ls="--", lw=0.8, label="seed-noise floor")
     ax.set_xscale("log")
-    from matplotlib.ticker import FormatStrFormatter
     ax.xaxis.set_major_formatter(FormatStrFormatter("%.3g"))
     ax.xaxis.set_minor_formatter(FormatStrFormatter("%.3g"))
     ax.set_xlabel("wall time per simulated second (ms)")
