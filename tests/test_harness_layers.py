@@ -11,13 +11,21 @@ module of the same layer or a lower one, and no two modules import each other, d
     solvers         bench.solvers, bench.render
     analysis        bench.paper, bench.statistics, bench.deposition, bench.pareto, bench.roofline, bench.environment
 
-(docs/architecture.md draws the same map.)"""
+(docs/architecture.md draws the same map.)
+
+A function-local import defers an optional extra (bench.console.EXTRA_OF: its package, or a project module that
+imports one at module level) and names that extra in a comment on its line or the line above; anything else is
+imported at the top of its module.  Modules that are not optional extras' are found at their module level only.
+"""
 from __future__ import annotations
 
 import ast
+from functools import lru_cache
 from pathlib import Path
 
 import pytest
+
+from bench.console import EXTRA_OF
 
 BENCH = Path(__file__).resolve().parent.parent / "bench"
 
@@ -130,3 +138,115 @@ def test_the_layer_check_sees_an_upward_import():
     found = {m for m, _ in imports(BENCH / "report" / "common.py", known, text)}
     assert found == {"bench.studies.table1", "bench.cli"}
     assert all(rank(m) > rank("bench.report.common") for m in found)
+
+
+# ---- function-local imports: optional extras only, each named ---------------------------------------------
+PROJECT = ("bench", "pbf_cuda", "grid_baseline", "cloudpbf_io")   # this repository's packages
+
+
+def _source(module: str) -> Path | None:
+    path = BENCH.parent.joinpath(*module.split("."))
+    return path / "__init__.py" if (path / "__init__.py").exists() else path.with_suffix(".py") \
+        if path.with_suffix(".py").exists() else None
+
+
+def _targets(node, path: Path) -> list[str]:
+    """The modules an import statement loads (relative imports resolved; `from m import name`: m.name if a
+    module, else m)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    base = node.module or ""
+    if node.level:
+        name = module_name(path)
+        parts = (name if path.name == "__init__.py" else name.rpartition(".")[0]).split(".")
+        base = ".".join(parts[:len(parts) - node.level + 1] + ([node.module] if node.module else []))
+    return [f"{base}.{a.name}" if _source(f"{base}.{a.name}") else base for a in node.names]
+
+
+def _module_level(tree: ast.Module) -> list:
+    """The import statements that run when the module is imported (not in functions or `if TYPE_CHECKING`)."""
+    found, todo = [], list(tree.body)
+    while todo:
+        st = todo.pop()
+        if isinstance(st, (ast.Import, ast.ImportFrom)):
+            found.append(st)
+        elif isinstance(st, ast.If) and "TYPE_CHECKING" in ast.unparse(st.test):
+            todo += st.orelse
+        elif not isinstance(st, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for child in ast.iter_child_nodes(st):
+                if isinstance(child, ast.stmt):
+                    todo.append(child)
+                elif isinstance(child, (ast.ExceptHandler, ast.match_case)):
+                    todo += child.body
+    return found
+
+
+@lru_cache(maxsize=None)
+def _imported_at_module_level(name: str) -> tuple[str, ...]:
+    path = _source(name)
+    if path is None:
+        return ()
+    return tuple(t for node in _module_level(ast.parse(path.read_text())) for t in _targets(node, path))
+
+
+def extras_of(module: str) -> set[str]:
+    """The optional extras importing `module` loads: its own, or those its project modules (and their packages)
+    import at module level, at any depth."""
+    found, seen, todo = set(), set(), [module]
+    while todo:
+        name = todo.pop()
+        root = name.split(".")[0]
+        if root in EXTRA_OF:
+            found.add(EXTRA_OF[root])
+        elif root in PROJECT and name not in seen:
+            seen.add(name)
+            parts = name.split(".")
+            todo += [".".join(parts[:i]) for i in range(1, len(parts))]           # its packages run first
+            todo += _imported_at_module_level(name)
+    return found
+
+
+def local_import_problems(path: Path, text: str | None = None) -> list[str]:
+    """Function-local imports of `path` (or of `text`, read as that file) that defer no optional extra or do not
+    name it.  An import in the `except ImportError` of a `try` that imports an extra is that extra's fallback."""
+    text = path.read_text() if text is None else text
+    lines, tree, wrong = text.splitlines(), ast.parse(text), []
+    for function in [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]:
+        fallback = {}
+        for node in ast.walk(function):
+            if isinstance(node, ast.Try):
+                tried = set().union(*[extras_of(t) for n in node.body if isinstance(n, (ast.Import, ast.ImportFrom))
+                                      for t in _targets(n, path)])
+                for handler in node.handlers:
+                    for n in ast.walk(handler):
+                        fallback[id(n)] = tried
+        for node in ast.walk(function):
+            if not isinstance(node, (ast.Import, ast.ImportFrom)) or not node.col_offset:
+                continue
+            extras = set().union(*[extras_of(t) for t in _targets(node, path)]) or fallback.get(id(node), set())
+            where = f"{path.relative_to(BENCH.parent)}:{node.lineno}: {lines[node.lineno - 1].strip()}"
+            comment = " ".join(lines[max(0, node.lineno - 2):node.lineno])
+            if not extras:
+                wrong.append(f"{where}  (no optional extra: import it at the top of the module)")
+            elif not any(f"{extra} extra" in comment for extra in extras):
+                wrong.append(f"{where}  (name its extra in a comment: {' or '.join(sorted(extras))} extra)")
+    return wrong
+
+
+def test_function_local_imports_defer_a_named_optional_extra():
+    wrong = [w for path in modules().values() for w in local_import_problems(path)]
+    assert not wrong, "function-local imports that are not an optional extra's:\n" + "\n".join(wrong)
+
+
+def test_the_local_import_check_sees_a_bad_one():
+    """The check itself: a local import of a project module without extras, or an extra's without its name."""
+    path = BENCH / "solvers.py"
+    assert extras_of("grid_baseline") == {"grid"} and extras_of("bench.statistics") == {"harness"}
+    assert not local_import_problems(path, "def f():\n    # grid extra (jax)\n    from grid_baseline import x\n")
+    assert not local_import_problems(path, "def f():\n    try:\n        import filelock  # harness extra\n"
+                                           "    except ImportError:\n        import fcntl  # harness extra\n")
+    for bad in ("def f():\n    from pbf_cuda.scene import load_scene  # grid extra\n",
+                "def f():\n    import json\n",
+                "def f():\n    import jax\n",
+                "def f():\n    from bench import statistics  # grid extra\n"):
+        assert len(local_import_problems(path, bad)) == 1, bad
