@@ -4,7 +4,7 @@ module of the same layer or a lower one, and no two modules import each other, d
     face            bench.cli, bench.cli_runs, bench.console
     studies         bench.studies.<study> (a module or a folder), bench.studies.page, bench.studies.demo,
                     bench.grid_scaling
-    study floor     bench.studies.registry, context, scales, adaptive_variants; bench.cli_common
+    study floor     bench.studies.registry, context, scales, adaptive_variants, plans; bench.cli_common
     report          bench.report.* (primitives: never a study)
     execution       bench.execution, bench.runs, bench.export
     store           bench.store.*
@@ -37,7 +37,7 @@ LAYERS = (   # lowest first; a module's layer: the one naming it, else the one w
     ("execution", ("bench.execution", "bench.runs", "bench.export")),
     ("report", ("bench.report", "bench.report.*")),
     ("study floor", ("bench.studies", "bench.studies.registry", "bench.studies.context", "bench.studies.scales",
-                     "bench.studies.adaptive_variants", "bench.cli_common")),
+                     "bench.studies.adaptive_variants", "bench.studies.plans", "bench.cli_common")),
     ("studies", ("bench.studies.*", "bench.grid_scaling")),
     ("face", ("bench.cli", "bench.cli_runs", "bench.console")),
 )
@@ -130,6 +130,46 @@ def test_the_report_never_imports_a_study():
         if name.startswith("bench.report"):
             assert not [m for m, _ in imports(path, known) if m.startswith("bench.studies")], name
 
+
+NOT_STUDIES = ("bench.studies.page", "bench.studies.demo")   # the report page and the demo: every study's
+
+
+def study_of(module: str) -> str | None:
+    """The study `module` belongs to (bench.studies.<study>, a module or a folder), None outside the studies."""
+    if module in NOT_STUDIES or not module.startswith("bench.studies.") or LAYERS[rank(module)][0] != "studies":
+        return None
+    return ".".join(module.split(".")[:3])
+
+
+def studies_importing_studies(known: dict, texts: dict | None = None) -> list[str]:
+    """Imports of a study from another (`texts`: module -> source read in its place; then only those modules)."""
+    wrong = []
+    for name, path in known.items():
+        if texts is not None and name not in texts:
+            continue
+        own = study_of(name)
+        for target, line in sorted(imports(path, known, (texts or {}).get(name))):
+            other = study_of(target) if target in known else None
+            if own and other and other != own:
+                wrong.append(f"{path.relative_to(BENCH.parent)}:{line}: the study {own} imports the study {other}")
+    return wrong
+
+
+def test_a_study_names_no_other_study():
+    """Removing one study's file breaks no other: what two studies share lives below them (bench.studies.plans)."""
+    wrong = studies_importing_studies(modules())
+    assert not wrong, "studies that import another study (move what they share below the studies):\n" + \
+        "\n".join(wrong)
+
+
+def test_the_study_check_sees_a_study_importing_another():
+    known = modules()
+    texts = {"bench.studies.multigpu": "def f():\n    from bench.studies.sweep import sweep_plan\n",
+             "bench.studies.cycling": "from bench.studies import compare\n"}
+    wrong = studies_importing_studies(known, texts)
+    assert len(wrong) == 2 and "the study bench.studies.multigpu imports the study bench.studies.sweep" in wrong[1]
+    assert study_of("bench.studies.time_to_solution.report") == "bench.studies.time_to_solution"
+    assert study_of("bench.studies.plans") is None and study_of("bench.studies.page") is None
 
 def test_the_layer_check_sees_an_upward_import():
     """The check itself: a report module importing a study or the face is caught, function-local or not."""

@@ -32,48 +32,21 @@ from bench.report.inference import LEVEL, describes_no_difference, difference_ci
 from bench import runs
 from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
-from bench.statistics import (CLOUD_MEANS, CLOUDY_COVER, DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, grid_for_scene,
-                              onset_time)
+from bench.statistics import CLOUD_MEANS, CLOUDY_COVER, DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, onset_time
 from bench.studies.context import StudyContext
+from bench.studies.plans import (ANIMATION_FRAMES, MIN_SEEDS, SOLVER_OF_MODE, compare_specs,  # noqa: F401
+                                  scene_pair)
 from bench.studies.registry import ReportSection, Study, register
-from bench.studies.scales import scale_scene
-from pbf_cuda.scene import Scene, SceneError, list_scenes, load_scene
+from pbf_cuda.scene import Scene
 
 MODES = ("non-adaptive", "adaptive", "grid")
 # The energy and heat budget of both solvers (Simulation.stats(), GridSimulation.stats(); docs/physics.md, Budgets).
 BUDGET_COLUMNS = ("mass_centre_height", "kinetic_energy", "mean_temperature", "heat_source_total",
                   "heat_latent_total", "heat_adiabatic_total", "heat_smoothing_total", "heat_numerical_total",
                   "heat_relaxation_total", "water_relaxation_total", "water_rain_total")
-SOLVER_OF_MODE = {"non-adaptive": "particles", "adaptive": "particles", "grid": "grid"}
 SOLVER_COLUMNS = ("n_particles", "level_0", "level_1", "level_2", "level_3", "density_error_mean",
                   "density_error_max", "density_excess_mean", "density_deficit_mean", "max_speed", "cfl", "substeps",
                   "divergence_rel", *BUDGET_COLUMNS)
-MIN_SEEDS = 5
-
-
-def scene_pair(name: str) -> tuple[Scene, Scene]:
-    """(non-adaptive, adaptive) versions of a cloud scene.
-
-    NAME_adaptive is used when it ships; otherwise adaptivity is switched on with level-0 particles
-    twice the spacing (a level-3 particle then matches the non-adaptive size, as in the paper)."""
-    base_name = name[: -len("_adaptive")] if name.endswith("_adaptive") and name[:-9] in list_scenes() else name
-    base = load_scene(base_name)
-    if base.atmosphere is None:
-        raise ValueError(f"compare needs a cloud scene (one with an [atmosphere] section); '{name}' has none. "
-                         f"Cloud scenes: {', '.join(n for n in list_scenes() if load_scene(n).thermodynamics)}")
-    if base.adaptive.enabled:
-        base = base.replace(**{"adaptive.enabled": False,
-                               "particles.spacing": base.particles.spacing / 2 ** (base.adaptive.max_level / 3)})
-    if f"{base_name}_adaptive" in list_scenes():
-        adaptive = load_scene(f"{base_name}_adaptive")
-    else:
-        try:
-            adaptive = base.replace(**{"adaptive.enabled": True, "adaptive.max_level": 3,
-                                       "particles.spacing": 2.0 * base.particles.spacing})
-        except SceneError as exc:
-            raise ValueError(f"cannot make an adaptive twin of '{name}' by doubling its spacing ({exc}); "
-                             f"write a scene file {base_name}_adaptive.toml") from None
-    return base, adaptive
 
 
 SMOKE_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "time.dt": 4.0,
@@ -83,31 +56,6 @@ scene's physics in a 1.2 x 1.6 x 1.2 km box of 2,304 particles, 480 s at dt = 4 
 run's refined particles hold a 64% density error, at 4 s about 1%).  Scaled to 3,000
 particles in the 3.2 km domain (222 m spacing) no particle run forms a cloud within the smoke run; in
 this box the first cloud appears near t = 320 s (measured on the 2-core CPU, docs/harness.md "Scales")."""
-
-ANIMATION_FRAMES = 8
-"""Stored states of the seed-0 non-adaptive run (the report's animation of the clouds developing)."""
-
-
-def compare_specs(ctx: StudyContext, scene_name: str, seeds: int) -> list[tuple[str, int, runs.RunSpec]]:
-    """(mode, seed, spec) for every mode and seed."""
-    if seeds < MIN_SEEDS:
-        raise ValueError(f"seeds = {seeds}: compare needs at least {MIN_SEEDS} seeds")
-    box = getattr(ctx.scale, "compare_box", None)
-    if box:
-        base, adaptive = (s.replace(**box) for s in scene_pair(scene_name))
-    else:
-        base, adaptive = (scale_scene(s, ctx.scale.particles, ctx.scale.step_fraction) for s in scene_pair(scene_name))
-    shape, _ = grid_for_scene(base)                  # one cell per non-adaptive spacing, for all three
-    out = []
-    for seed in range(seeds):
-        out.append(("non-adaptive", seed, runs.RunSpec("particles", base, backend=ctx.backend, seed=seed,
-                                                        diagnostics_resolution=shape,
-                                                        keep_snapshots=ANIMATION_FRAMES if seed == 0 else 3)))
-        out.append(("adaptive", seed, runs.RunSpec("particles", adaptive, backend=ctx.backend, seed=seed,
-                                                    diagnostics_resolution=shape)))
-        out.append(("grid", seed, runs.RunSpec("grid", base, seed=seed, resolution=shape)))
-    return out
-
 
 def _labelled(frame: pd.DataFrame, mode: str, seed: int, ctx: StudyContext, device: str) -> pd.DataFrame:
     frame = frame.copy()

@@ -38,7 +38,7 @@ from bench.render import compact_particles, render_or_note, render_particles, re
 from bench.store.result import RunResult
 from bench.studies.registry import Study, register
 from bench.statistics import grid_for_scene
-from bench.studies.compare import SOLVER_OF_MODE, scene_pair
+from bench.studies.plans import SOLVER_OF_MODE, scene_pair
 from bench.studies.context import StudyContext
 from pbf_cuda.scene import Scene
 

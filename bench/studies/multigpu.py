@@ -30,7 +30,7 @@ from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, OutOpt, QuietOpt
                               refusals, study_context)
 from bench.studies.context import StudyContext
 from bench.studies.registry import Study, register
-from bench.studies.sweep import sweep_plan
+from bench.studies.plans import sweep_plan
 
 OUTPUT = "multigpu_sweep.csv"
 

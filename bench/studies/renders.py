@@ -10,7 +10,7 @@ NAME.unavailable.txt note with the reason instead of a PNG).
 * figure3_shape_energy.png: the paper's Figure 3, shape energy (eq. 20) of the adaptive run's
   last state beside its cloud w;
 * clouds_animation.gif and clouds_strip.png: the clouds developing, every stored state of the compare
-  study's non-adaptive seed-0 run (compare.ANIMATION_FRAMES of them), as a looping GIF and as one strip.
+  study's non-adaptive seed-0 run (plans.ANIMATION_FRAMES of them), as a looping GIF and as one strip.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from pathlib import Path
 from bench.report import plots
 from bench.report.common import Inputs, Section, _command, _missing, _render_blocks
 from bench import render, runs, statistics
-from bench.studies.compare import compare_specs
+from bench.studies.plans import compare_specs
 from bench.studies.context import StudyContext
 from bench.studies.registry import ReportSection, Study, register
 from bench.studies.scales import scale_slab

@@ -42,61 +42,14 @@ from bench.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from bench.pareto import pareto_mask
 from bench.report.inference import describes_no_difference, ratio_ci
-from bench.statistics import cloudy_period_means, grid_for_scene
+from bench.statistics import cloudy_period_means
 from bench.studies.context import StudyContext
+from bench.studies.plans import SWEEP_SCENE as SCENE, sweep_plan  # noqa: F401
 from bench.studies.registry import ReportSection, Study, register
-from bench.studies.scales import scale_scene
-from pbf_cuda.scene import load_scene
 
-SCENE = "growing"
 SMOKE_BOX_SCENE = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
                    "time.snapshot_every": 20}
 """The smoke sweep's box (bench.studies.compare.SMOKE_BOX without its spacing)."""
-
-
-def sweep_plan(ctx: StudyContext, scene_name: str = SCENE) -> list[dict]:
-    """Every run of the sweep: dict(method, parameter, value, mode, spec)."""
-    scale = ctx.scale
-    base = load_scene(scene_name)
-    adaptive = load_scene(f"{scene_name}_adaptive")
-    box = getattr(scale, "sweep_box", None)
-    if box:   # spacings (m) in a small box; the adaptive level-0 particles at the same spacing
-        box = dict(box)
-        spacings = box.pop("spacings")
-        counts = sorted(spacings, reverse=True)                 # coarse to fine, as the counts
-        make = lambda scene, s, adaptive_twin=False: scene.replace(**box, **{"particles.spacing": float(s)})  # noqa: E731
-    else:
-        counts = sorted(scale.sweep_particles)
-        make = lambda scene, n, adaptive_twin=False: scale_scene(scene, n, scale.step_fraction)  # noqa: E731
-    middle = counts[len(counts) // 2]
-    mid_scene = make(base, middle)
-    analysis, _ = grid_for_scene(mid_scene)
-    plan = []
-
-    def particles(parameter, value, mode, scene):
-        spec = runs.RunSpec("particles", scene, backend=ctx.backend, seed=0, keep_snapshots=1,
-                            diagnostics_resolution=analysis)
-        plan.append(dict(method="particles", parameter=parameter, value=value, mode=mode, spec=spec))
-
-    for n in counts:
-        scene = make(base, n)
-        particles("spacing", scene.particles.spacing, "non-adaptive", scene)
-        scene = make(adaptive, n, True)
-        particles("adaptive_spacing", scene.particles.spacing, "adaptive", scene)
-    for it in scale.sweep_iterations:
-        particles("iterations", it, "non-adaptive", mid_scene.replace(**{"pbf.iterations": int(it)}))
-    mid_adaptive = make(adaptive, middle, True)
-    for alpha in scale.sweep_split_thresholds:
-        merge = min(mid_adaptive.adaptive.merge_threshold, 0.5 * alpha)
-        particles("split_threshold", alpha, "adaptive",
-                  mid_adaptive.replace(**{"adaptive.split_threshold": float(alpha),
-                                          "adaptive.merge_threshold": float(merge)}))
-    size = max(mid_scene.domain.size)
-    for n in sorted(scale.sweep_grid_cells):
-        shape = tuple(max(2, int(round(n * s / size))) for s in mid_scene.domain.size)
-        plan.append(dict(method="grid", parameter="cells", value=n, mode="grid",
-                         spec=runs.RunSpec("grid", mid_scene, seed=0, resolution=shape, keep_snapshots=1)))
-    return plan
 
 
 # ---- error metrics ---------------------------------------------------------------------------------
