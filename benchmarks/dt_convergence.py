@@ -1,7 +1,7 @@
 """The model's convergence in the time step: one scene at several dt, with the per-step coefficients stated at
 time.reference_dt (rates per unit time, the default) and stated per step (time.reference_dt = dt, the model before
 rates), seed means of the cover, cloudy volume and mean LWP series, each run's error against the smallest step's
-run of the same mode (relative L2 as bench/studies/adaptive_pareto.py defines it), and the wall time per simulated
+run of the same mode (relative L2 as cloudpbf/studies/adaptive_pareto.py defines it), and the wall time per simulated
 second.
 
 Usage: python benchmarks/dt_convergence.py [--scene growing] [--spacing 68] [--seeds 3] [--dts 0.5,1,2,4]
@@ -17,9 +17,9 @@ import time
 import numpy as np
 import pandas as pd
 
-from bench.environment import commit, device_description
-from bench.statistics import particle_diagnostics
-from bench.studies.adaptive_pareto import SERIES, _relative_l2
+from cloudpbf.environment import commit, device_description
+from cloudpbf.statistics import particle_diagnostics
+from cloudpbf.studies.adaptive_pareto import SERIES, _relative_l2
 from pbf_cuda import Simulation, load_scene
 
 SERIES_USED = [(k, c) for k, c in SERIES if k in ("cover", "volume", "lwp")]

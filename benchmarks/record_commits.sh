@@ -26,7 +26,7 @@ for commit in "$@"; do
       || { tail -30 "$root/build-${sha:0:8}.log"; status=1; continue; }
   fi
   echo "== record ${sha:0:8} ($(date +%T))"
-  # The commit's solver and harness first (the benchmarks import bench.studies.scales). asv drops
+  # The commit's solver and harness first (the benchmarks import cloudpbf.studies.scales). asv drops
   # PYTHONPATH from the benchmarks' environment and uses ASV_PYTHONPATH in its place.
   ASV_PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}" python3 benchmarks/record.py "$sha" --machine "$machine" \
     -- ${ASV_ARGS:-} || status=1

@@ -7,5 +7,5 @@
 * :mod:`cloudpbf_io.bgeo`: Houdini's classic binary .bgeo (numpy writer and reader);
 * :mod:`cloudpbf_io.progress`: progress reports for a terminal and for a log.
 
-Needs numpy alone at import time; imports nothing of ``pbf_cuda``, ``grid_baseline`` or ``bench``.
+Needs numpy alone at import time; imports nothing of ``pbf_cuda``, ``grid_baseline`` or ``cloudpbf``.
 """

@@ -16,7 +16,7 @@ Pure Python + numpy at import time; pyvista and xarray are imported when a funct
   as the vector attribute ``v``, every other per-particle field under its own name (``id`` and
   ``level`` as int), and detail attributes ``time`` (s), ``step``, ``scene`` and ``<attribute>_unit``.
 * :func:`fields_to_xarray` turns gridded fields (the grid baseline's ``fields()`` or particles
-  deposited by ``bench.statistics.deposit``) into an ``xarray.Dataset`` on cell-centre coordinates
+  deposited by ``cloudpbf.statistics.deposit``) into an ``xarray.Dataset`` on cell-centre coordinates
   ``x``, ``y``, ``z`` (m) with CF attributes (``units``, ``standard_name``, ``long_name``, ``axis``),
   so both solvers' fields line up in xarray.
 

@@ -284,7 +284,7 @@ class GridSimulation:
         """fields() as an ``xarray.Dataset``: temperature, potential_temperature, vapor, cloud and
         velocity_x/_y/_z on the cell-centre coordinates x, y, z (m, y up) with CF attributes (units,
         standard_name, long_name, axis), and the scalar coordinates time (s) and step.  The same
-        layout as particles deposited by ``bench.export.particles_to_xarray``, so the two solvers
+        layout as particles deposited by ``cloudpbf.export.particles_to_xarray``, so the two solvers
         compare directly in xarray.  Needs xarray (``pip install "cloudpbf[io]"``)."""
         return fields_to_xarray(self.fields(), time=self.time, step=self._step, attrs={
             "source": "cloudpbf grid_baseline (Eulerian, jax-cfd)", "solver": "grid", "scene": self.scene.name,

@@ -9,5 +9,5 @@ py=.venv/bin/python
 "$py" -m pdoc --docformat restructuredtext --no-search --footer-text "cloudpbf $("$py" -c 'from pbf_cuda import __version__; print(__version__)')" \
   -o "$out" pbf_cuda pbf_cuda.simulation pbf_cuda.scene cloudpbf_io.export cloudpbf_io.bgeo cloudpbf_io.progress pbf_cuda.cuda_arch \
   pbf_cuda.initial_state pbf_cuda.noise pbf_cuda.kernels grid_baseline grid_baseline.simulation grid_baseline.model \
-  grid_baseline.projection grid_baseline.noise grid_baseline.compat bench
+  grid_baseline.projection grid_baseline.noise grid_baseline.compat cloudpbf
 echo "api_docs: wrote $out/index.html"

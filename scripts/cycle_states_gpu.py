@@ -1,12 +1,12 @@
 """The compact states behind example 2's renders, for a study whose runs are no longer in the run cache.
 
     python scripts/cycle_states_gpu.py OUT_DIR [MODE ...]   # on a GPU machine, then locally:
-    python -c "from bench.studies.cycling import render_cycle_states; render_cycle_states('OUT_DIR', 'reports/gpu/data/renders')"
+    python -c "from cloudpbf.studies.cycling import render_cycle_states; render_cycle_states('OUT_DIR', 'reports/gpu/data/renders')"
 
 Runs the seed-0 specs of `cloudpbf cycling --scale gpu` again (the same scenes; seed 0 keeps every diagnostic
 state; MODE limits it to some of non-adaptive, adaptive, grid) one after another in this process, then writes
 cycle_<mode>_<peak|min>.npz at the first cycle's peak and clearest moment of the committed
-reports/gpu/data/cycling_cycles.csv and cycling_budgets.csv (bench.studies.cycling.cycle_states).
+reports/gpu/data/cycling_cycles.csv and cycling_budgets.csv (cloudpbf.studies.cycling.cycle_states).
 CLOUDPBF_STATES_SCALE=cpu runs the CPU scale's specs on the CPU instead (to try the script without a GPU; the
 committed times are the GPU study's).  Rendering needs pyvista, which the GPU machine may lack."""
 import os
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.cli_common import Backend, ScaleName, study_context
-from bench.studies.cycling import cycle_states, cycling_specs
+from cloudpbf.cli_common import Backend, ScaleName, study_context
+from cloudpbf.studies.cycling import cycle_states, cycling_specs
 
 out = Path(sys.argv[1])
 modes = set(sys.argv[2:]) or {"non-adaptive", "adaptive", "grid"}

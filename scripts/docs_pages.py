@@ -6,7 +6,7 @@ repository holds at that moment, so they cannot go stale:
 * ``reference/scenes.md``: every scene field from the schema (pbf_cuda/scene.py): unit, range, default, meaning;
   and the shipped scenes with their particle counts and descriptions
 * ``reference/cli.md``: every ``cloudpbf`` command with its arguments and options (the typer/click command tree)
-* ``reference/studies.md``: every study of the registry (bench/studies/registry.py): what it runs (its module's
+* ``reference/studies.md``: every study of the registry (cloudpbf/studies/registry.py): what it runs (its module's
   docstring), what it writes, its report sections, its sizes per scale and what its verdict means
 * ``results.md``: a table per CSV of the committed results (reports/gpu/data), with its devices and commits
 * ``changelog.md``: CHANGELOG.md of the repository root
@@ -157,7 +157,7 @@ def scene_reference() -> str:
 def cli_reference() -> str:
     import click
     import typer
-    from bench.cli import app
+    from cloudpbf.cli import app
     group = typer.main.get_command(app)
     ctx = click.Context(group, info_name="cloudpbf")
     lines = ["# Command line reference", "",
@@ -211,11 +211,11 @@ def cli_reference() -> str:
 # ---- the studies ------------------------------------------------------------------------------------
 def studies_reference() -> tuple[str, list[str]]:
     """The page, and the names of the studies that have no VERDICTS entry."""
-    from bench.studies.registry import studies
+    from cloudpbf.studies.registry import studies
     found = studies()
     missing = [s.name for s in found if s.name not in VERDICTS]
     lines = ["# Studies", "",
-             "Generated from the study registry (`bench/studies/registry.py`) at every build of this site. "
+             "Generated from the study registry (`cloudpbf/studies/registry.py`) at every build of this site. "
              "`cloudpbf demo` runs the studies marked *demo* in this order at a scale that fits the machine "
              "(`smoke` without a GPU, `gpu` with one); the others run as their own commands. Each writes CSVs "
              "into `OUT/data` (default `reports/latest/data`), which the report reads. Sizes per scale are in "
@@ -224,7 +224,7 @@ def studies_reference() -> tuple[str, list[str]]:
              ", ".join(f"`{o}`" for o in s.outputs)] for s in found]
     lines += [_table(["study", "in the demo", "command", "writes"], rows), ""]
     for s in found:
-        module = importlib.import_module(getattr(s.run or s.command, "__module__", "") or "bench.studies")
+        module = importlib.import_module(getattr(s.run or s.command, "__module__", "") or "cloudpbf.studies")
         doc = _docstring_markdown(module.__doc__ or "")
         title, _, body = doc.partition("\n")
         lines += [f"## {s.name}", "", f"**{title.strip()}**", ""]

@@ -27,32 +27,32 @@ R=${REPORT_DIR:-reports/gpu}
 for step in "$@"; do
   stage "$step"
   case "$step" in
-    table1) timeout 300 python3 -X faulthandler -m bench.cli table1 --scale gpu --out "$R" -q && cat "$R/data/table1.csv" ;;
-    scaling) timeout 300 python3 -m bench.cli pbf-scaling --sizes 250000,1000000,4000000,16000000 --steps 20 --quiet \
+    table1) timeout 300 python3 -X faulthandler -m cloudpbf.cli table1 --scale gpu --out "$R" -q && cat "$R/data/table1.csv" ;;
+    scaling) timeout 300 python3 -m cloudpbf.cli pbf-scaling --sizes 250000,1000000,4000000,16000000 --steps 20 --quiet \
                --out "$R/data/pbf_scaling.csv" && cat "$R/data/pbf_scaling.csv" ;;
-    grid) timeout 240 python3 -m bench.cli grid-scaling --sizes 32,64,128 --steps 10 --devices cpu,gpu \
+    grid) timeout 240 python3 -m cloudpbf.cli grid-scaling --sizes 32,64,128 --steps 10 --devices cpu,gpu \
             --commit "${CLOUDPBF_COMMIT:-unknown}" --out "$R/data/grid_scaling.csv" && cat "$R/data/grid_scaling.csv" ;;
     adaptive_cost)  # level-0 spacings 45 m and 40 m: about 430k and 600k adaptive particles on average
-      timeout 300 python3 -m bench.cli adaptive-cost --spacing 45 --steps 500 --quiet --out /tmp/ac45.csv &&
-      timeout 300 python3 -m bench.cli adaptive-cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
+      timeout 300 python3 -m cloudpbf.cli adaptive-cost --spacing 45 --steps 500 --quiet --out /tmp/ac45.csv &&
+      timeout 300 python3 -m cloudpbf.cli adaptive-cost --spacing 40 --steps 500 --quiet --out /tmp/ac40.csv &&
       python3 -c "import pandas as pd, sys; pd.concat([pd.read_csv('/tmp/ac45.csv'), pd.read_csv('/tmp/ac40.csv')]).to_csv(sys.argv[1], index=False)" \
         "$R/data/adaptive_cost.csv" && cat "$R/data/adaptive_cost.csv" ;;
-    constant_gravity) timeout 600 python3 -m bench.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
+    constant_gravity) timeout 600 python3 -m cloudpbf.cli constant-gravity --gravity 0.1,0.3,1.0 --quiet \
                         --out "$R/data/constant_gravity.csv" ;;
     adaptive_pareto|adaptive_pareto_cumulus)  # paper scale, 3 seeds; runs cached in $CLOUDPBF_RUNS across calls
       scene=growing; [ "$step" = adaptive_pareto_cumulus ] && scene=cumulus
-      timeout ${STUDY_TIMEOUT:-560} python3 -m bench.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
+      timeout ${STUDY_TIMEOUT:-560} python3 -m cloudpbf.cli adaptive-pareto --scene "$scene" --seeds 3 --scale gpu \
         --backend cuda ${PARETO_ARGS---scheduler inline} --out "$R" -q ;;
     cycling)  # paper example 2 at the scene files' size (930k particles, 4200 s), 3 seeds x 3 modes
-      timeout ${CYCLING_TIMEOUT:-3000} python3 -m bench.cli cycling --scale gpu --seeds 3 --backend cuda ${CYCLING_ARGS---scheduler inline} \
+      timeout ${CYCLING_TIMEOUT:-3000} python3 -m cloudpbf.cli cycling --scale gpu --seeds 3 --backend cuda ${CYCLING_ARGS---scheduler inline} \
         --out "$R" -q && cat "$R/data/cycling_cycles.csv" ;;
     cycling_states)  # seed 0's states at its first cycle's peak and clearest moment, for renders where pyvista is
-      python3 -c "import sys, pandas as pd; from bench.studies.cycling import cycle_states
+      python3 -c "import sys, pandas as pd; from cloudpbf.studies.cycling import cycle_states
 d = sys.argv[1] + '/data/'
 print(cycle_states(pd.read_csv(d + 'cycling_cycles.csv'), pd.read_csv(d + 'cycling_budgets.csv'), sys.argv[2]))" \
         "$R" /tmp/cycle_states && tar cf "$OUT/cycle_states.tar" -C /tmp cycle_states ;;
     pareto_states)  # seed 0's final states of the best adaptive variant and its uniform twins, for renders
-      python3 -c "import sys, json, pathlib, pandas as pd; from bench.studies.adaptive_pareto import pareto_states
+      python3 -c "import sys, json, pathlib, pandas as pd; from cloudpbf.studies.adaptive_pareto import pareto_states
 d = pathlib.Path(sys.argv[1]) / 'data'
 for suffix, scene in (('', 'growing'), ('_cumulus', 'cumulus')):
     if (d / f'adaptive_verdict{suffix}.json').is_file():
@@ -60,10 +60,10 @@ for suffix, scene in (('', 'growing'), ('_cumulus', 'cumulus')):
                             json.loads((d / f'adaptive_verdict{suffix}.json').read_text()), f'/tmp/pareto_states/{scene}'))" \
         "$R" && tar cf "$OUT/pareto_states.tar" -C /tmp pareto_states ;;
     multigpu)  # the sweep's particle runs on 1 GPU, then on 2 (dask-cuda: the multigpu extra, e.g. from .whl/)
-      timeout ${STUDY_TIMEOUT:-590} python3 -m bench.cli multigpu-sweep --gpus-list 1,2 --scale ${MULTIGPU_SCALE:-gpu} \
+      timeout ${STUDY_TIMEOUT:-590} python3 -m cloudpbf.cli multigpu-sweep --gpus-list 1,2 --scale ${MULTIGPU_SCALE:-gpu} \
         --out "$R" -q && cat "$R/data/multigpu_sweep.csv" ;;
     compare|stress|sweep)
-      timeout ${STUDY_TIMEOUT:-150} python3 -m bench.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
+      timeout ${STUDY_TIMEOUT:-150} python3 -m cloudpbf.cli "$step" --scale cpu --backend cuda --scheduler inline --out "$R" -q ;;
     slab)  # final states of the Figure 1 slab (kappa 0 and 0.1), for renders on a machine with pyvista
       timeout 200 python3 - "$OUT" <<'PY'
 import os, sys, numpy as np
@@ -81,7 +81,7 @@ PY
     snapshots)  # compact final states of the Table 1 runs, for renders on a machine with pyvista
       python3 - "$R" <<PY
 import sys, glob, numpy as np, pandas as pd
-from bench.render import compact_particles
+from cloudpbf.render import compact_particles
 out = sys.argv[1]
 for row in pd.read_csv(f"{out}/data/table1.csv").itertuples():
     snaps = sorted(glob.glob(f"{row.run_dir}/snapshots/*.npz"))

@@ -11,7 +11,7 @@ tree's tests/ and scripts/mutants.toml laid over it, so uncommitted tests can be
 (default /tmp/cloudpbf-mutants), with its own CMake build of pbf_cuda._core (CLOUDPBF_CUDA=OFF, Ninja) and a
 small virtual environment holding the build's requirements (nanobind, the CCCL headers; pyproject.toml's
 build-system pins). The tests run with the project's interpreter (--python, default: this one) on the copy: a
-sitecustomize drops the editable install's import hook, so `pbf_cuda`, `bench` and `grid_baseline` are the
+sitecustomize drops the editable install's import hook, so `pbf_cuda`, `cloudpbf` and `grid_baseline` are the
 copy's. A second run reuses the copy and the build (an incremental rebuild per C++ mutant: one translation unit
 and the module's link).
 

@@ -3,10 +3,10 @@
     python scripts/render_elsewhere.py record --scale cpu --backend cuda --out reports/gpu   # e.g. the GPU machine
     python scripts/render_elsewhere.py draw reports/gpu/data/renders/pending_renders.pkl.gz reports/gpu
 
-``record`` runs the renders study (bench.studies.renders: its runs from the run cache, or run now) with every
+``record`` runs the renders study (cloudpbf.studies.renders: its runs from the run cache, or run now) with every
 draw call captured instead of drawn: the call's function, its PNG/GIF name and its arguments, the particle
 states cut to the fields the renders read (clear particles thinned to 10% in the animation frames, as
-bench.render.compact_particles does), written to OUT/data/renders/pending_renders.pkl.gz.  ``draw`` makes
+cloudpbf.render.compact_particles does), written to OUT/data/renders/pending_renders.pkl.gz.  ``draw`` makes
 each captured call with pyvista into OUT/data/renders/ (a note instead of a picture where pyvista cannot
 draw, as the study itself does).  The pickle is made and read by this project only: draw only files you
 recorded.
@@ -27,7 +27,7 @@ PENDING = "pending_renders.pkl.gz"
 
 def _cut(value, thin: bool):
     """A state dict cut to KEYS (thinned to the cloudy and 10% of the clear particles when `thin`)."""
-    from bench.render import compact_particles
+    from cloudpbf.render import compact_particles
     if isinstance(value, dict) and "position" in value:
         if thin and "cloud" in value:
             return compact_particles(value, keys=KEYS)
@@ -38,9 +38,9 @@ def _cut(value, thin: bool):
 
 
 def record(argv) -> int:
-    from bench import render
-    from bench.cli_common import Backend, ScaleName, study_context
-    from bench.studies import renders
+    from cloudpbf import render
+    from cloudpbf.cli_common import Backend, ScaleName, study_context
+    from cloudpbf.studies import renders
     parser = argparse.ArgumentParser(prog="render_elsewhere.py record")
     parser.add_argument("--scale", default="auto", choices=[s.value for s in ScaleName])
     parser.add_argument("--backend", default="auto", choices=[b.value for b in Backend])
@@ -69,7 +69,7 @@ def record(argv) -> int:
 
 
 def draw(argv) -> int:
-    from bench import render
+    from cloudpbf import render
     parser = argparse.ArgumentParser(prog="render_elsewhere.py draw")
     parser.add_argument("pending", type=Path)
     parser.add_argument("out", type=Path)

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from bench.studies import adaptive_pareto as ap
+from cloudpbf.studies import adaptive_pareto as ap
 
 
 def fake_result(time, cover, ms_per_step, particles, steps=100, pbf_share=0.5, seed_shift=0.0):
@@ -139,7 +139,7 @@ def test_pareto_states_keep_every_cloudy_particle(tmp_path, monkeypatch):
     snap = tmp_path / "snap.npz"
     np.savez(snap, position=rng.random((n, 3)).astype(np.float32), cloud=cloud, level=np.zeros(n, np.uint8),
              time_s=np.array(1000.0), step=np.array(500))
-    monkeypatch.setattr("bench.store.result.RunResult.load", staticmethod(
+    monkeypatch.setattr("cloudpbf.store.result.RunResult.load", staticmethod(
         lambda path: SimpleNamespace(snapshot_paths=lambda: [snap])))
     per_config = pd.DataFrame({"config": ["uniform-68m", "uniform-34m", "thermal-68m"],
                                "kind": ["uniform", "uniform", "adaptive"], "spacing_m": [68.0, 34.0, 68.0],

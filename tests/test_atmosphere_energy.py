@@ -296,7 +296,7 @@ def test_heated_ground_layer_stays_on_the_floor(spacing, seed):
     above 0.95 of a full layer every 200 s, the heat per 200 s does not fall below 0.97 of the first 200 s,
     and the mass centre moves less than 0.5 m (measured at 100 m, seed 0: heated mass 0.97-1.00, heat
     0.509 -> 0.517 K, +0.07 m; with pbf.remove_shift_drift off, the default: 0.88, 0.459 K and +8.9 m)."""
-    from bench.statistics import heated_mass_fraction
+    from cloudpbf.statistics import heated_mass_fraction
     scene = load_scene("growing").replace(**{"domain.size": [1200.0, 1600.0, 1200.0],
                                              "particles.spacing": spacing, "time.dt": 8.0,
                                              "time.reference_dt": 8.0,   # kappa and xsph per step of 8 s

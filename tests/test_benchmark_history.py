@@ -1,4 +1,4 @@
-"""The benchmark history (bench.studies.benchmark_history): asv results files read as they are, each
+"""The benchmark history (cloudpbf.studies.benchmark_history): asv results files read as they are, each
 commit against the machine's previous one, a change flagged only when it passes the factor and the two
 99% intervals do not overlap; damaged files refused by name."""
 import json
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from typer.testing import CliRunner
 
-from bench.cli import app
-from bench.studies.benchmark_history import HistoryError, benchmark_history, read_results_file
+from cloudpbf.cli import app
+from cloudpbf.studies.benchmark_history import HistoryError, benchmark_history, read_results_file
 
 REPO = Path(__file__).resolve().parents[1]
 COLUMNS = ["result", "params", "version", "started_at", "duration", "stats_ci_99_a", "stats_ci_99_b",

@@ -17,10 +17,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from bench import runs
-from bench.cli import app
-from bench.store import manifest
-from bench.store.safe import StoreError, UnsafeFileError, read_json
+from cloudpbf import runs
+from cloudpbf.cli import app
+from cloudpbf.store import manifest
+from cloudpbf.store.safe import StoreError, UnsafeFileError, read_json
 from test_harness_toy import toy_solver  # noqa: F401  (fixture)
 from test_reliability import Crash, assert_same, comparable, crash_at, toy_spec
 
@@ -378,8 +378,8 @@ def test_a_peer_sending_a_huge_frame_is_one_line(tmp_path, monkeypatch):
     import socket
     import struct
     import threading
-    from bench.studies import context
-    from bench.studies.scales import resolve_scale
+    from cloudpbf.studies import context
+    from cloudpbf.studies.scales import resolve_scale
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(4)

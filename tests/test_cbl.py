@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from bench.studies import cbl
+from cloudpbf.studies import cbl
 from pbf_cuda import Simulation, load_scene
 
 jax = pytest.importorskip("jax")

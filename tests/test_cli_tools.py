@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from bench.cli import app
+from cloudpbf.cli import app
 
 runner = CliRunner()
 REPO = Path(__file__).resolve().parent.parent
@@ -34,8 +34,8 @@ def test_version_is_the_package_metadata():
 
 def test_version_needs_no_extra(monkeypatch, capsys):
     """The console script answers --version before importing the harness (typer, pandas, ...)."""
-    from bench import console
-    for name in ("bench.cli", "typer", "pandas"):
+    from cloudpbf import console
+    for name in ("cloudpbf.cli", "typer", "pandas"):
         monkeypatch.setitem(sys.modules, name, None)      # importing any of them now fails
     assert console.main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"cloudpbf {importlib.metadata.version('cloudpbf')}"
@@ -55,7 +55,7 @@ def test_every_study_is_a_subcommand():
     assert {"adaptive-cost", "constant-gravity", "pbf-scaling", "grid-scaling", "export", "table1", "compare",
             "sweep", "stress", "scaling", "demo", "budgets", "cbl"} <= names
     # no study keeps a command line of its own (argparse) beside the cloudpbf one
-    for module in sorted((REPO / "bench" / "studies").glob("*.py")):
+    for module in sorted((REPO / "cloudpbf" / "studies").glob("*.py")):
         assert "argparse" not in module.read_text(), module.name
 
 
@@ -79,11 +79,11 @@ def test_study_arguments_are_checked(args, expected):
 
 
 def test_module_entry_points_forward_to_the_cli():
-    """`python -m bench.studies.constant_gravity ...` is `cloudpbf constant-gravity ...` (same list syntax)."""
-    out = subprocess.run([sys.executable, "-m", "bench.studies.constant_gravity", "--gravity", "0.1,x"],
+    """`python -m cloudpbf.studies.constant_gravity ...` is `cloudpbf constant-gravity ...` (same list syntax)."""
+    out = subprocess.run([sys.executable, "-m", "cloudpbf.studies.constant_gravity", "--gravity", "0.1,x"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "comma-separated floats" in out.stderr
-    out = subprocess.run([sys.executable, "-m", "bench.studies.cbl", "--times", "200,x"],
+    out = subprocess.run([sys.executable, "-m", "cloudpbf.studies.cbl", "--times", "200,x"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "'--times'" in out.stderr and "comma-separated floats" in out.stderr
 
@@ -152,7 +152,7 @@ def test_cli_run_prints_progress_lines_when_piped(tmp_path):
     _compiled()
     env = {**os.environ, "CLOUDPBF_PROGRESS_INTERVAL": "0", "CLOUDPBF_RUNS": str(tmp_path / "runs")}
     env.pop("CLOUDPBF_PROGRESS", None)
-    out = subprocess.run([sys.executable, "-m", "bench.cli", "run", "growing", "--particles", "1000", "--steps", "20"],
+    out = subprocess.run([sys.executable, "-m", "cloudpbf.cli", "run", "growing", "--particles", "1000", "--steps", "20"],
                          cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr
     assert "particles growing: 20/20 step (100%)" in out.stderr
@@ -160,7 +160,7 @@ def test_cli_run_prints_progress_lines_when_piped(tmp_path):
 
 def test_missing_harness_extra_names_the_extra():
     code = ("import sys; sys.modules['click'] = None; sys.modules['typer'] = None\n"
-            "from bench.console import main; sys.exit(main(['--help']))")
+            "from cloudpbf.console import main; sys.exit(main(['--help']))")
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 1
     assert 'pip install "cloudpbf[harness]"' in out.stderr and "Traceback" not in out.stderr
@@ -168,11 +168,11 @@ def test_missing_harness_extra_names_the_extra():
 
 def test_console_script_points_at_the_wrapper():
     eps = importlib.metadata.entry_points(group="console_scripts", name="cloudpbf")
-    assert [ep.value for ep in eps] == ["bench.console:main"]
+    assert [ep.value for ep in eps] == ["cloudpbf.console:main"]
 
 
 def test_run_cache_location(monkeypatch, tmp_path):
-    from bench.store import identity
+    from cloudpbf.store import identity
     monkeypatch.delenv("CLOUDPBF_RUNS", raising=False)
     assert identity.is_checkout() and identity.default_root() == identity.REPO_ROOT / "runs"
     fake = tmp_path / "lib" / "python3.11" / "site-packages"
@@ -190,10 +190,10 @@ def test_run_cache_location(monkeypatch, tmp_path):
 
 @pytest.mark.parametrize("with_filelock", [True, False])
 def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock):
-    from bench.store.lock import locked
+    from cloudpbf.store.lock import locked
     if not with_filelock:
         monkeypatch.setitem(sys.modules, "filelock", None)      # a bare machine: the POSIX fallback
-    assert "\nimport fcntl" not in (REPO / "bench" / "store" / "lock.py").read_text()   # not at import time (Windows)
+    assert "\nimport fcntl" not in (REPO / "cloudpbf" / "store" / "lock.py").read_text()   # not at import time (Windows)
     order = []
 
     def hold():
@@ -212,13 +212,13 @@ def test_run_lock_is_portable_and_exclusive(tmp_path, monkeypatch, with_filelock
 
 
 def test_environment_reports_the_cloudpbf_version():
-    from bench.environment import versions
+    from cloudpbf.environment import versions
     assert versions()["cloudpbf"] == importlib.metadata.version("cloudpbf")
 
 
 def test_xla_flags_are_ones_xla_accepts():
     pytest.importorskip("jax")
-    from bench.studies.context import xla_single_thread_flags
+    from cloudpbf.studies.context import xla_single_thread_flags
     flags = xla_single_thread_flags("--xla_dump_to=/tmp/x intra_op_parallelism_threads=1")
     assert flags.split() == ["--xla_dump_to=/tmp/x", "--xla_cpu_multi_thread_eigen=false"]
     assert xla_single_thread_flags(flags) == flags
@@ -311,7 +311,7 @@ def test_the_ranges_include_the_versions_of_the_gpu_results():
 
 
 def test_environment_is_checked_against_the_lock(tmp_path):
-    from bench.environment import environment, lock_check
+    from cloudpbf.environment import environment, lock_check
     lock = tmp_path / "constraints.txt"
     lock.write_text(f"# comment\nnumpy=={np.__version__}\npandas==0.0.1\nno-such-package==1.0\n")
     got = lock_check(lock)

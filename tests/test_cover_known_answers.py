@@ -1,10 +1,10 @@
-"""Known answers of the cloud-field helpers of bench.statistics that the diagnostics row does not go through
+"""Known answers of the cloud-field helpers of cloudpbf.statistics that the diagnostics row does not go through
 (issue 54: a mutant of `cloud_cover`'s axis survived every test)."""
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.statistics import cloud_cover, cloud_fraction_profile, diagnostics
+from cloudpbf.statistics import cloud_cover, cloud_fraction_profile, diagnostics
 
 
 @settings(max_examples=20, deadline=None, derandomize=True)

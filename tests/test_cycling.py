@@ -1,6 +1,6 @@
 """Paper example 2, clouds that disappear and reappear: the large-scale forcing of docs/cycling.md
 (C1 time-of-day heating, C2 relaxation, C3 autoconversion, C4 water budget) in the particle solver and
-the grid baseline, and the cycle counting of bench/studies/cycling.py."""
+the grid baseline, and the cycle counting of cloudpbf/studies/cycling.py."""
 import math
 
 import numpy as np
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bench.statistics import grid_for_scene, particle_diagnostics
-from bench.studies.cycling import CPU_OVERRIDES, count_cycles, cycle_budgets
+from cloudpbf.statistics import grid_for_scene, particle_diagnostics
+from cloudpbf.studies.cycling import CPU_OVERRIDES, count_cycles, cycle_budgets
 from pbf_cuda import Simulation
 from pbf_cuda.scene import SceneError, load_scene
 from solver_helpers import BACKENDS
@@ -287,7 +287,7 @@ def test_clouds_disappear_and_reappear_at_cpu_scale(kind, seed):
 
 
 def test_report_shows_the_cycling_study(tmp_path):
-    from bench.studies.page import build_report
+    from cloudpbf.studies.page import build_report
     data = tmp_path / "data"
     data.mkdir()
     t = np.arange(0.0, 2400.0, 40.0)
@@ -317,7 +317,7 @@ def test_report_shows_the_cycling_study(tmp_path):
 @given(n=st.integers(2, 5), period=st.floats(300.0, 3000.0), leak=st.floats(-1e-3, 1e-3))
 def test_cycle_budgets_window_each_cycle_and_close_the_water_budget(n, period, leak):
     import pandas as pd
-    from bench.studies.cycling import cycle_budgets, cycle_windows
+    from cloudpbf.studies.cycling import cycle_budgets, cycle_windows
     t = np.linspace(0.0, n * period, 40 * n + 1)
     cover = 0.5 * np.maximum(0.0, np.sin(2 * np.pi * t / period)) ** 2
     rain = 2.0 * t / period                                      # kg, running sums
@@ -339,7 +339,7 @@ def test_cycle_budgets_window_each_cycle_and_close_the_water_budget(n, period, l
 
 def test_cycle_budgets_name_a_missing_column():
     import pandas as pd
-    from bench.studies.cycling import cycle_budgets
+    from cloudpbf.studies.cycling import cycle_budgets
     with pytest.raises(ValueError, match="rain_total"):
         cycle_budgets(pd.DataFrame({"solver": [], "mode": [], "seed": [], "time_s": [], "cloud_cover": [],
                                     "total_water": [], "water_relaxation_total": []}))

@@ -46,7 +46,7 @@ def test_readme_is_one_screen_with_working_links():
 
 def test_code_points_to_docs_not_readme_sections():
     out = subprocess.run(["git", "grep", "-n", "-E", r"README[ ,:]+(\"|Physics|Speed|Adaptive|Shift|Budgets|Deviations)",
-                          "--", "cloudpbf_io", "pbf_cuda", "bench", "grid_baseline", "benchmarks", "tests", "docs", "scripts",
+                          "--", "cloudpbf_io", "pbf_cuda", "cloudpbf", "grid_baseline", "benchmarks", "tests", "docs", "scripts",
                           ":!tests/test_docs.py"],
                          cwd=REPO, capture_output=True, text=True)
     if out.returncode not in (0, 1):
@@ -93,13 +93,13 @@ def test_generated_pages_are_made_from_the_current_code_and_data(site):
         assert f"<code>{name}</code>" in scenes
 
     import typer
-    from bench.cli import app
+    from cloudpbf.cli import app
     cli = (site / "reference" / "cli.html").read_text()
     group = typer.main.get_command(app)
     for name in group.list_commands(None):
         assert f'id="{name}"' in cli, f"command {name} missing from the CLI reference"
 
-    from bench.studies.registry import studies
+    from cloudpbf.studies.registry import studies
     page = (site / "reference" / "studies.html").read_text()
     for s in studies():
         assert f'id="{s.name}"' in page, f"study {s.name} missing from the studies page"

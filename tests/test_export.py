@@ -14,7 +14,7 @@ pytest.importorskip("zarr")
 
 from typer.testing import CliRunner  # noqa: E402
 
-from bench.cli import app  # noqa: E402
+from cloudpbf.cli import app  # noqa: E402
 from cloudpbf_io.export import (COORD_ATTRS, FIELD_ATTRS, PARTICLE_UNITS, fields_to_xarray, read_pvd,  # noqa: E402
                              state_to_pyvista, write_particle_series)
 
@@ -106,7 +106,7 @@ def test_particles_and_grid_share_coordinates_and_agree_on_the_initial_atmospher
     """Deposited particles and the grid baseline on one labelled grid: at the start both hold the
     scene's environment profile, so their temperatures agree away from the walls."""
     pytest.importorskip("jax_cfd")
-    from bench.export import combine_solvers, particles_to_xarray
+    from cloudpbf.export import combine_solvers, particles_to_xarray
     from grid_baseline import GridSimulation
     from pbf_cuda import Simulation
     scene = particle_sim.scene
@@ -173,7 +173,7 @@ def test_cli_export_particle_run_all_formats(particle_sim, tmp_path):
         assert ds.sizes["time"] == len(snaps) and list(ds.step.values) == [int(p.stem[5:]) for p in snaps]
         assert ds.cloud.attrs["standard_name"] == "cloud_liquid_water_mixing_ratio"
         assert ds.attrs["solver"] == "particles" and ds.attrs["scene"] == "growing"
-        from bench.export import particles_to_xarray
+        from cloudpbf.export import particles_to_xarray
         from pbf_cuda.scene import scene_from_dict
         scene = scene_from_dict(json.loads((run_dir / "config.json").read_text())["identity"]["scene"])
         direct = particles_to_xarray(last, scene)
@@ -215,7 +215,7 @@ def _stored_run(root, solver, frames, finished=True):
     for frame in frames:
         np.savez(run_dir / "snapshots" / f"step_{int(frame['step']):06d}.npz", **frame)
     if finished:
-        from bench.store.manifest import info_checksum, manifest
+        from cloudpbf.store.manifest import info_checksum, manifest
         info = {"key": None, "stable": True, "step": int(frames[-1]["step"]), "manifest": manifest(run_dir)}
         info["checksum"] = info_checksum(info)
         (run_dir / "result.json").write_text(json.dumps(info))

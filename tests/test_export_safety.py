@@ -23,8 +23,8 @@ pytest.importorskip("h5netcdf")
 pytest.importorskip("zarr")
 pytest.importorskip("pyvista")
 
-from bench.cli import app  # noqa: E402
-from bench.store.manifest import info_checksum, manifest  # noqa: E402
+from cloudpbf.cli import app  # noqa: E402
+from cloudpbf.store.manifest import info_checksum, manifest  # noqa: E402
 from cloudpbf_io.files import json_default  # noqa: E402
 from pbf_cuda.scene import NAME_PATTERN, SceneError, load_scene, sanitize_name, scene_from_dict  # noqa: E402
 
@@ -122,7 +122,7 @@ def test_export_into_a_folder_of_other_files_touches_none_of_them(run_dir, tmp_p
 
 
 def test_out_the_run_itself_keeps_the_run(run_dir, tmp_path):
-    from bench.store.manifest import verify_run
+    from cloudpbf.store.manifest import verify_run
     run = stored_run(tmp_path, "fedcba9876543210")
     for fmt in ("netcdf", "zarr", "vtp"):
         res = export(run, "--format", fmt, "--out", run)
@@ -268,7 +268,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(run_dir, tmp_path, monkeypatch
             res = export(run_dir, "--format", fmt, "--out", disk)
             one_line_error(res, str(disk), "nothing was written")
             # past the free-space check: the writer itself meets the full disk
-            monkeypatch.setattr("bench.export.check_free_space", lambda folder, need: None)
+            monkeypatch.setattr("cloudpbf.export.check_free_space", lambda folder, need: None)
             res = export(run_dir, "--format", fmt, "--out", disk)
             one_line_error(res, "the disk is full", "nothing was written")
             assert tree(disk) == before

@@ -1,4 +1,4 @@
-"""bench/grid_scaling.py: CSV format, appending, and the commit column without git."""
+"""cloudpbf/grid_scaling.py: CSV format, appending, and the commit column without git."""
 import csv
 
 import pytest
@@ -6,14 +6,14 @@ import pytest
 pytest.importorskip("jax")
 pytest.importorskip("jax_cfd")
 
-from bench import grid_scaling  # noqa: E402
+from cloudpbf import grid_scaling  # noqa: E402
 
 
 def test_writes_then_appends_rows(tmp_path):
     out = tmp_path / "reports" / "grid_scaling.csv"
     args = ["--sizes", "6", "--steps", "2", "--warmup", "0", "--devices", "cpu", "--out", str(out)]
-    assert grid_scaling.main(args) == 0                 # python -m bench.grid_scaling: the CLI's grid-scaling
-    from bench.cli import main
+    assert grid_scaling.main(args) == 0                 # python -m cloudpbf.grid_scaling: the CLI's grid-scaling
+    from cloudpbf.cli import main
     assert main(["grid-scaling", "--sizes", "8"] + args[2:] + ["--commit", "abc1234"]) == 0
     with open(out, newline="") as fh:
         rows = list(csv.reader(fh))

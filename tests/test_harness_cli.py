@@ -7,7 +7,7 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from bench.cli import app
+from cloudpbf.cli import app
 from pbf_cuda.scene import list_scenes
 from test_harness_toy import toy_solver  # noqa: F401  (fixture)
 
@@ -77,7 +77,7 @@ def test_unstable_run_exits_1_and_names_step_and_particles(toy_solver, tmp_path)
 
 
 def test_console_entry_point_returns_exit_code_2():
-    proc = subprocess.run([sys.executable, "-m", "bench.cli", "run", "nosuch"], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "cloudpbf.cli", "run", "nosuch"], capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 2
     assert "unknown scene 'nosuch'" in proc.stderr

@@ -10,9 +10,9 @@ import time
 import pandas as pd
 import pytest
 
-from bench import runs
-from bench.studies.page import sections
-from bench.studies.table1 import TABLE1_COLUMNS
+from cloudpbf import runs
+from cloudpbf.studies.page import sections
+from cloudpbf.studies.table1 import TABLE1_COLUMNS
 
 pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
 
@@ -24,7 +24,7 @@ DATA_FILES = ("environment.json", "table1.csv", "pbf_scaling.csv", "grid_scaling
 def test_smoke_demo_writes_every_study_and_the_report(tmp_path):
     out, root = tmp_path / "report", tmp_path / "runs"
     env = {**os.environ, "CLOUDPBF_RUNS": str(root)}
-    cmd = [sys.executable, "-m", "bench.cli", "demo", "--scale", "smoke", "--out", str(out), "--quiet"]
+    cmd = [sys.executable, "-m", "cloudpbf.cli", "demo", "--scale", "smoke", "--out", str(out), "--quiet"]
     code = {solver: runs.code_version(solver) for solver in runs.SOLVERS}
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)

@@ -1,19 +1,19 @@
-"""The layers of bench/ point down: every import of a bench module (function-local ones included) goes to a
+"""The layers of cloudpbf/ point down: every import of a harness module (function-local ones included) goes to a
 module of the same layer or a lower one, and no two modules import each other, directly or through others.
 
-    face            bench.cli, bench.cli_runs, bench.console
-    studies         bench.studies.<study> (a module or a folder), bench.studies.page, bench.studies.demo,
-                    bench.grid_scaling
-    study floor     bench.studies.registry, context, scales, adaptive_variants, plans; bench.cli_common
-    report          bench.report.* (primitives: never a study)
-    execution       bench.execution, bench.runs, bench.export
-    store           bench.store.*
-    solvers         bench.solvers, bench.render
-    analysis        bench.paper, bench.statistics, bench.deposition, bench.pareto, bench.roofline, bench.environment
+    face            cloudpbf.cli, cloudpbf.cli_runs, cloudpbf.console
+    studies         cloudpbf.studies.<study> (a module or a folder), cloudpbf.studies.page, cloudpbf.studies.demo,
+                    cloudpbf.grid_scaling
+    study floor     cloudpbf.studies.registry, context, scales, adaptive_variants, plans; cloudpbf.cli_common
+    report          cloudpbf.report.* (primitives: never a study)
+    execution       cloudpbf.execution, cloudpbf.runs, cloudpbf.export
+    store           cloudpbf.store.*
+    solvers         cloudpbf.solvers, cloudpbf.render
+    analysis        cloudpbf.paper, cloudpbf.statistics, cloudpbf.deposition, cloudpbf.pareto, cloudpbf.roofline, cloudpbf.environment
 
 (docs/architecture.md draws the same map.)
 
-A function-local import defers an optional extra (bench.console.EXTRA_OF: its package, or a project module that
+A function-local import defers an optional extra (cloudpbf.console.EXTRA_OF: its package, or a project module that
 imports one at module level) and names that extra in a comment on its line or the line above; anything else is
 imported at the top of its module.  Modules that are not optional extras' are found at their module level only.
 """
@@ -25,21 +25,21 @@ from pathlib import Path
 
 import pytest
 
-from bench.console import EXTRA_OF
+from cloudpbf.console import EXTRA_OF
 
-BENCH = Path(__file__).resolve().parent.parent / "bench"
+BENCH = Path(__file__).resolve().parent.parent / "cloudpbf"
 
 LAYERS = (   # lowest first; a module's layer: the one naming it, else the one whose "package.*" holds it
-    ("analysis", ("bench", "bench.paper", "bench.statistics", "bench.deposition", "bench.pareto", "bench.roofline",
-                  "bench.environment")),
-    ("solvers", ("bench.solvers", "bench.render")),
-    ("store", ("bench.store", "bench.store.*")),
-    ("execution", ("bench.execution", "bench.runs", "bench.export")),
-    ("report", ("bench.report", "bench.report.*")),
-    ("study floor", ("bench.studies", "bench.studies.registry", "bench.studies.context", "bench.studies.scales",
-                     "bench.studies.adaptive_variants", "bench.studies.plans", "bench.cli_common")),
-    ("studies", ("bench.studies.*", "bench.grid_scaling")),
-    ("face", ("bench.cli", "bench.cli_runs", "bench.console")),
+    ("analysis", ("cloudpbf", "cloudpbf.paper", "cloudpbf.statistics", "cloudpbf.deposition", "cloudpbf.pareto", "cloudpbf.roofline",
+                  "cloudpbf.environment")),
+    ("solvers", ("cloudpbf.solvers", "cloudpbf.render")),
+    ("store", ("cloudpbf.store", "cloudpbf.store.*")),
+    ("execution", ("cloudpbf.execution", "cloudpbf.runs", "cloudpbf.export")),
+    ("report", ("cloudpbf.report", "cloudpbf.report.*")),
+    ("study floor", ("cloudpbf.studies", "cloudpbf.studies.registry", "cloudpbf.studies.context", "cloudpbf.studies.scales",
+                     "cloudpbf.studies.adaptive_variants", "cloudpbf.studies.plans", "cloudpbf.cli_common")),
+    ("studies", ("cloudpbf.studies.*", "cloudpbf.grid_scaling")),
+    ("face", ("cloudpbf.cli", "cloudpbf.cli_runs", "cloudpbf.console")),
 )
 
 
@@ -63,7 +63,7 @@ def rank(module: str) -> int:
 
 
 def imports(path: Path, known: dict, text: str | None = None) -> set[tuple[str, int]]:
-    """(bench module imported, line) of every import in `path` (or in `text`, read as that module), at any depth
+    """(harness module imported, line) of every import in `path` (or in `text`, read as that module), at any depth
     (function-local ones too)."""
     name = module_name(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
@@ -76,9 +76,9 @@ def imports(path: Path, known: dict, text: str | None = None) -> set[tuple[str, 
             if node.level:
                 parts = package.split(".")
                 base = ".".join(parts[:len(parts) - node.level + 1] + ([node.module] if node.module else []))
-            for a in node.names:     # `from bench.report import plots`: the module bench.report.plots
+            for a in node.names:     # `from cloudpbf.report import plots`: the module cloudpbf.report.plots
                 found.add((f"{base}.{a.name}" if f"{base}.{a.name}" in known else base, node.lineno))
-    return {(m, line) for m, line in found if m == "bench" or m.startswith("bench.")}
+    return {(m, line) for m, line in found if m == "cloudpbf" or m.startswith("cloudpbf.")}
 
 
 def graph() -> dict[str, set[str]]:
@@ -127,16 +127,16 @@ def test_no_import_cycles():
 def test_the_report_never_imports_a_study():
     known = modules()
     for name, path in known.items():
-        if name.startswith("bench.report"):
-            assert not [m for m, _ in imports(path, known) if m.startswith("bench.studies")], name
+        if name.startswith("cloudpbf.report"):
+            assert not [m for m, _ in imports(path, known) if m.startswith("cloudpbf.studies")], name
 
 
-NOT_STUDIES = ("bench.studies.page", "bench.studies.demo")   # the report page and the demo: every study's
+NOT_STUDIES = ("cloudpbf.studies.page", "cloudpbf.studies.demo")   # the report page and the demo: every study's
 
 
 def study_of(module: str) -> str | None:
-    """The study `module` belongs to (bench.studies.<study>, a module or a folder), None outside the studies."""
-    if module in NOT_STUDIES or not module.startswith("bench.studies.") or LAYERS[rank(module)][0] != "studies":
+    """The study `module` belongs to (cloudpbf.studies.<study>, a module or a folder), None outside the studies."""
+    if module in NOT_STUDIES or not module.startswith("cloudpbf.studies.") or LAYERS[rank(module)][0] != "studies":
         return None
     return ".".join(module.split(".")[:3])
 
@@ -156,7 +156,7 @@ def studies_importing_studies(known: dict, texts: dict | None = None) -> list[st
 
 
 def test_a_study_names_no_other_study():
-    """Removing one study's file breaks no other: what two studies share lives below them (bench.studies.plans)."""
+    """Removing one study's file breaks no other: what two studies share lives below them (cloudpbf.studies.plans)."""
     wrong = studies_importing_studies(modules())
     assert not wrong, "studies that import another study (move what they share below the studies):\n" + \
         "\n".join(wrong)
@@ -164,24 +164,24 @@ def test_a_study_names_no_other_study():
 
 def test_the_study_check_sees_a_study_importing_another():
     known = modules()
-    texts = {"bench.studies.multigpu": "def f():\n    from bench.studies.sweep import sweep_plan\n",
-             "bench.studies.cycling": "from bench.studies import compare\n"}
+    texts = {"cloudpbf.studies.multigpu": "def f():\n    from cloudpbf.studies.sweep import sweep_plan\n",
+             "cloudpbf.studies.cycling": "from cloudpbf.studies import compare\n"}
     wrong = studies_importing_studies(known, texts)
-    assert len(wrong) == 2 and "the study bench.studies.multigpu imports the study bench.studies.sweep" in wrong[1]
-    assert study_of("bench.studies.time_to_solution.report") == "bench.studies.time_to_solution"
-    assert study_of("bench.studies.plans") is None and study_of("bench.studies.page") is None
+    assert len(wrong) == 2 and "the study cloudpbf.studies.multigpu imports the study cloudpbf.studies.sweep" in wrong[1]
+    assert study_of("cloudpbf.studies.time_to_solution.report") == "cloudpbf.studies.time_to_solution"
+    assert study_of("cloudpbf.studies.plans") is None and study_of("cloudpbf.studies.page") is None
 
 def test_the_layer_check_sees_an_upward_import():
     """The check itself: a report module importing a study or the face is caught, function-local or not."""
     known = modules()
-    text = "from bench.studies import table1\ndef f():\n    from ..cli import app\n"
+    text = "from cloudpbf.studies import table1\ndef f():\n    from ..cli import app\n"
     found = {m for m, _ in imports(BENCH / "report" / "common.py", known, text)}
-    assert found == {"bench.studies.table1", "bench.cli"}
-    assert all(rank(m) > rank("bench.report.common") for m in found)
+    assert found == {"cloudpbf.studies.table1", "cloudpbf.cli"}
+    assert all(rank(m) > rank("cloudpbf.report.common") for m in found)
 
 
 # ---- function-local imports: optional extras only, each named ---------------------------------------------
-PROJECT = ("bench", "pbf_cuda", "grid_baseline", "cloudpbf_io")   # this repository's packages
+PROJECT = ("cloudpbf", "pbf_cuda", "grid_baseline", "cloudpbf_io")   # this repository's packages
 
 
 def _source(module: str) -> Path | None:
@@ -281,12 +281,12 @@ def test_function_local_imports_defer_a_named_optional_extra():
 def test_the_local_import_check_sees_a_bad_one():
     """The check itself: a local import of a project module without extras, or an extra's without its name."""
     path = BENCH / "solvers.py"
-    assert extras_of("grid_baseline") == {"grid"} and extras_of("bench.statistics") == {"harness"}
+    assert extras_of("grid_baseline") == {"grid"} and extras_of("cloudpbf.statistics") == {"harness"}
     assert not local_import_problems(path, "def f():\n    # grid extra (jax)\n    from grid_baseline import x\n")
     assert not local_import_problems(path, "def f():\n    try:\n        import filelock  # harness extra\n"
                                            "    except ImportError:\n        import fcntl  # harness extra\n")
     for bad in ("def f():\n    from pbf_cuda.scene import load_scene  # grid extra\n",
                 "def f():\n    import json\n",
                 "def f():\n    import jax\n",
-                "def f():\n    from bench import statistics  # grid extra\n"):
+                "def f():\n    from cloudpbf import statistics  # grid extra\n"):
         assert len(local_import_problems(path, bad)) == 1, bad

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.studies import page, registry
+from cloudpbf.studies import page, registry
 
 REPO = Path(__file__).resolve().parent.parent
-STUDIES = REPO / "bench" / "studies"
+STUDIES = REPO / "cloudpbf" / "studies"
 
 TOY = '''
 from pathlib import Path
@@ -21,8 +21,8 @@ from typing import Annotated
 
 import typer
 
-from bench.report.glance import Card
-from bench.studies.registry import GlanceCard, ReportSection, Study, register
+from cloudpbf.report.glance import Card
+from cloudpbf.studies.registry import GlanceCard, ReportSection, Study, register
 
 
 def toy_command(out: Annotated[Path, typer.Option("--out")] = Path("toy")) -> None:
@@ -33,7 +33,7 @@ def toy_command(out: Annotated[Path, typer.Option("--out")] = Path("toy")) -> No
 def toy_section(inp, sec, env):
     toy, _ = inp.csv("toy")
     if toy is None:
-        from bench.report.common import _missing
+        from cloudpbf.report.common import _missing
         _missing(sec, "toy.csv", "toy", inp)
         return
     sec.add("text", f"toy data: {int(toy['value'].sum())}")
@@ -95,12 +95,12 @@ def test_the_cli_lists_a_study_of_a_package_named_in_cloudpbf_studies(tmp_path):
     (package / "toy.py").write_text(TOY)
     env = dict(os.environ, CLOUDPBF_STUDIES="toystudies",
                PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    code = "import sys; from bench.cli import main; sys.exit(main(['--help']))"
+    code = "import sys; from cloudpbf.cli import main; sys.exit(main(['--help']))"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0, out.stderr
     assert "toy-study" in out.stdout
-    code = "import sys; from bench.cli import main; sys.exit(main(['toy-study', '--out', 'x']))"
+    code = "import sys; from cloudpbf.cli import main; sys.exit(main(['toy-study', '--out', 'x']))"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
                          timeout=300)
     assert out.returncode == 0 and "toy into x" in out.stdout, out.stderr
@@ -112,7 +112,7 @@ def _own_files(study) -> set[Path]:
     module = sys.modules[study.command.__module__ if study.command else study.report[0].load().__module__]
     path = Path(module.__file__).resolve()
     folder = path.parent
-    if folder != STUDIES:                                   # a study folder: bench/studies/<study>/
+    if folder != STUDIES:                                   # a study folder: cloudpbf/studies/<study>/
         while folder.parent != STUDIES:
             folder = folder.parent
         return set(folder.rglob("*.py"))
@@ -140,7 +140,7 @@ def _names_and_strings(path: Path) -> tuple[set[str], list[str]]:
 
 
 def test_no_module_outside_a_study_names_its_builders_or_its_command():
-    sources = sorted((REPO / "bench").rglob("*.py"))
+    sources = sorted((REPO / "cloudpbf").rglob("*.py"))
     parsed = {p.resolve(): _names_and_strings(p) for p in sources}
     wrong = []
     for study in registry.studies():
@@ -160,8 +160,8 @@ def test_no_module_outside_a_study_names_its_builders_or_its_command():
 
 
 def test_the_report_package_names_no_study_section():
-    """bench/report holds primitives: no section title or short title of a study is written there."""
-    texts = "\n".join(p.read_text() for p in (REPO / "bench" / "report").rglob("*.py"))
+    """cloudpbf/report holds primitives: no section title or short title of a study is written there."""
+    texts = "\n".join(p.read_text() for p in (REPO / "cloudpbf" / "report").rglob("*.py"))
     for section in registry.report_sections():
         assert f'"{section.title}"' not in texts, section.title
         assert not section.short or f'"{section.short}"' not in texts, section.short

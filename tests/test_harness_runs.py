@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import runs
-from bench.store import identity
+from cloudpbf import runs
+from cloudpbf.store import identity
 from test_harness_toy import ToySimulation, toy_scene, toy_solver  # noqa: F401  (fixture)
 
 
@@ -204,7 +204,7 @@ def _solver_or_skip():
 
 def small_cloud_scene(**overrides):
     """growing resampled to ~2700 particles: about 20 ms a step on one CPU core."""
-    from bench.studies.scales import scale_scene
+    from cloudpbf.studies.scales import scale_scene
     from pbf_cuda.scene import load_scene
     scene = scale_scene(load_scene("growing"), 3000)
     return scene.replace(**{"time.steps": 12, "time.snapshot_every": 4, **overrides})

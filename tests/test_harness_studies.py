@@ -11,12 +11,12 @@ import pandas as pd
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from bench import execution, runs
-from bench.pareto import pareto_mask
-from bench.studies import stress, sweep
-from bench.studies.compare import scene_pair
-from bench.studies.context import INLINE, StudyContext, StudyError
-from bench.studies.scales import SCALES, fine_particles, resolve_scale, scale_scene, scale_slab
+from cloudpbf import execution, runs
+from cloudpbf.pareto import pareto_mask
+from cloudpbf.studies import stress, sweep
+from cloudpbf.studies.compare import scene_pair
+from cloudpbf.studies.context import INLINE, StudyContext, StudyError
+from cloudpbf.studies.scales import SCALES, fine_particles, resolve_scale, scale_scene, scale_slab
 from pbf_cuda.scene import load_scene
 from test_harness_toy import toy_solver  # noqa: F401  (fixture)
 
@@ -67,7 +67,7 @@ def test_auto_scale_is_the_minutes_long_demo_without_a_gpu(monkeypatch, backends
 
 
 def test_figure1_slab_runs_all_its_steps_at_every_scale(tmp_path):
-    from bench.studies.renders import slab_specs
+    from cloudpbf.studies.renders import slab_specs
     steps = load_scene("smoothing_slab").time.steps
     for scale in SCALES.values():       # the smoke scale's half would end before its clouds form
         ctx = StudyContext(out=tmp_path / "out", scale=scale, runs_root=tmp_path / "runs", scheduler=INLINE)
@@ -77,7 +77,7 @@ def test_figure1_slab_runs_all_its_steps_at_every_scale(tmp_path):
 
 
 def test_smoke_compare_and_sweep_run_in_the_small_box(tmp_path):
-    from bench.studies.compare import compare_specs
+    from cloudpbf.studies.compare import compare_specs
     ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", scheduler=INLINE)
     for _, _, spec in compare_specs(ctx, "growing", 5):
         assert tuple(spec.scene.domain.size) == (1200.0, 1600.0, 1200.0)
@@ -279,7 +279,7 @@ def test_dask_workers_run_missing_specs_and_cached_ones_stay_home(tmp_path):
 
 def test_table1_row_is_ms_per_step_without_double_counting():
     from types import SimpleNamespace
-    from bench.studies.table1 import ROWS, TABLE1_COLUMNS, table1_row
+    from cloudpbf.studies.table1 import ROWS, TABLE1_COLUMNS, table1_row
     timings = {"pbf": {"total_ms": 100.0, "count": 10}, "neighbors": {"total_ms": 30.0, "count": 10},
                "solver": {"total_ms": 60.0, "count": 10}, "smoothing": {"total_ms": 20.0, "count": 10},
                "cloud_dynamics": {"total_ms": 4.0, "count": 10}, "splitting": {"total_ms": 5.0, "count": 2}}
@@ -338,7 +338,7 @@ def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, b
     """Table 1 keeps the paper's four rows and, when the growing study's verdict names a best variant other
     than growing_adaptive's own setting, times it in a fifth row (its spacing only at the GPU scale)."""
     from types import SimpleNamespace
-    from bench.studies.table1 import best_variant, table1_rows
+    from cloudpbf.studies.table1 import best_variant, table1_rows
     if best is not None:
         (tmp_path / "adaptive_verdict.json").write_text(json.dumps(best))
     ctx = SimpleNamespace(data=tmp_path, scale=SCALES["gpu"])
@@ -359,7 +359,7 @@ def test_table1_adds_the_best_adaptive_variant_beside_the_paper_rows(tmp_path, b
 
 def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):
     pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
-    from bench.studies.adaptive_cost import adaptive_cost
+    from cloudpbf.studies.adaptive_cost import adaptive_cost
     frame = adaptive_cost(["growing_adaptive"], spacing=200.0, steps=12, backend="cpu", runs_root=tmp_path,
                           quiet=True)
     row = frame.iloc[0]
@@ -376,7 +376,7 @@ def test_adaptive_cost_rows_are_per_step_and_consistent(tmp_path):
 
 
 def test_cover_summary_finds_onset_and_a_vanish_and_return():
-    from bench.studies.constant_gravity import cover_summary
+    from cloudpbf.studies.constant_gravity import cover_summary
     t = np.arange(8) * 10.0
     steady = cover_summary(pd.DataFrame({"time_s": t, "cloud_cover": [0, 0, .1, .3, .4, .4, .5, .5]}))
     assert steady == {"first_cloud_s": 20.0, "max_cover": 0.5, "final_cover": 0.5, "vanished_and_returned": False}
@@ -392,7 +392,7 @@ def test_particles_vs_grid_means_over_the_cloudy_period_of_both():
     """Time means of the seed means, only at times where both solvers' mean cover is above 1%; the grid's
     times matched to the particles' nearest; rel_diff = (particles - grid) / grid."""
     import pandas as pd
-    from bench.studies.compare import particles_vs_grid
+    from cloudpbf.studies.compare import particles_vs_grid
     rows = []
     t = np.arange(0.0, 1001.0, 100.0)
     for mode, base, cover in (("non-adaptive", 600.0, np.where(t >= 300, 0.5, 0.0)),
@@ -417,7 +417,7 @@ def test_mixed_layer_lcl_is_the_lcl_of_the_mean_air_below_half_the_cloud_base():
     """Layers below half the seed-mean cloud base are averaged (dry static temperature T + Gamma_d z and total
     water) and lifted to saturation; layers above do not count, and a time without cloud has no LCL."""
     import pandas as pd
-    from bench.studies.compare import mixed_layer_lcl, particles_vs_grid
+    from cloudpbf.studies.compare import mixed_layer_lcl, particles_vs_grid
     scene = load_scene("growing")
     a = scene.atmosphere
     z = np.arange(25.0, 3200.0, 50.0)
@@ -460,8 +460,8 @@ def test_sweep_cloud_means_and_the_convergence_plot():
     runs of both methods, and is left out for a sweep.csv without the statistics."""
     import pandas as pd
     from types import SimpleNamespace
-    from bench.report import plots
-    from bench.studies.sweep import cloud_means
+    from cloudpbf.report import plots
+    from cloudpbf.studies.sweep import cloud_means
     stats = pd.DataFrame({"cloud_cover": [0.0, 0.005, 0.2, 0.4], "lwp_mean": [0.0, 1.0, 0.1, 0.3],
                           "cloud_base": [np.nan, 500.0, 600.0, 800.0], "cloud_top": [np.nan, 900.0, 1000.0, 1400.0]})
     means = cloud_means(SimpleNamespace(stable=True, stats=lambda: stats))
@@ -480,9 +480,9 @@ def test_studies_run_inline_without_dask_and_say_so(tmp_path, monkeypatch):
     """Without dask's distributed a study runs its specs in this process (and says so) unless a cluster was
     asked for; an asked-for cluster is refused with the missing package named, at exit code 2 on the CLI."""
     pytest.importorskip("pbf_cuda._core", reason="the particle solver is not built")
-    from bench.cli_common import refusals
-    from bench.studies import context as context_module
-    from bench.studies.context import SchedulerError
+    from cloudpbf.cli_common import refusals
+    from cloudpbf.studies import context as context_module
+    from cloudpbf.studies.context import SchedulerError
     monkeypatch.setattr(context_module, "has_distributed", lambda: False)
     scene = scale_scene(load_scene("growing"), 3000).replace(**{"time.steps": 2, "time.snapshot_every": 2})
     ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", quiet=True)

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from bench import solvers
+from cloudpbf import solvers
 from cloudpbf_io.files import atomic_path
 from pbf_cuda.protocol import InstabilityError
 from pbf_cuda.scene import load_scene

@@ -9,11 +9,11 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from bench import runs
-from bench.cli import app
-from bench.studies import context, multigpu
-from bench.studies.context import GpuError, StudyContext, parse_gpus, select_gpus, visible_gpus
-from bench.studies.scales import SCALES
+from cloudpbf import runs
+from cloudpbf.cli import app
+from cloudpbf.studies import context, multigpu
+from cloudpbf.studies.context import GpuError, StudyContext, parse_gpus, select_gpus, visible_gpus
+from cloudpbf.studies.scales import SCALES
 from test_harness_toy import toy_scene, toy_solver  # noqa: F401  (fixture)
 
 runner = CliRunner()

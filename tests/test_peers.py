@@ -1,12 +1,12 @@
-"""The peer benchmark (`cloudpbf peers`, bench/studies/peers.py) without SPlisHSPlasH installed: it says so, times
+"""The peer benchmark (`cloudpbf peers`, cloudpbf/studies/peers.py) without SPlisHSPlasH installed: it says so, times
 cloudpbf alone, and refuses bad arguments by name."""
 import sys
 
 import pandas as pd
 from typer.testing import CliRunner
 
-from bench.cli import app
-from bench.studies.peers import SPLISH_SCENE, run_peers, splish_available
+from cloudpbf.cli import app
+from cloudpbf.studies.peers import SPLISH_SCENE, run_peers, splish_available
 
 
 def test_without_splishsplash_it_says_so_and_times_cloudpbf_alone(tmp_path):
@@ -44,7 +44,7 @@ def test_bad_arguments_exit_2_naming_the_option(tmp_path):
 def test_rates_keep_each_run_apart_and_give_both_ratios():
     # Two runs (commits) on one host: the faster repeat of a run never mixes with another run's, and the ratio of
     # the means differs from the ratio of the best repeats exactly as the repeats say.
-    from bench.studies.peers import RATIO, SPLISH, best_rates
+    from cloudpbf.studies.peers import RATIO, SPLISH, best_rates
     rows = []
     for commit, splish, ours in (("aaa", [100.0, 200.0], [300.0, 300.0]), ("bbb", [400.0, 400.0], [500.0, 700.0])):
         rows += [{"threads": 2, "tool": SPLISH, "device": "cpu", "commit": commit, "particle_steps_per_s": r}

@@ -27,10 +27,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from bench import runs
-from bench.cli import app
-from bench.store import manifest
-from bench.store.files import sha256_file
+from cloudpbf import runs
+from cloudpbf.cli import app
+from cloudpbf.store import manifest
+from cloudpbf.store.files import sha256_file
 from cloudpbf_io import files
 from pbf_cuda import initial_state
 from pbf_cuda.memory import boundary_count, check_memory, estimate_memory
@@ -523,7 +523,7 @@ def test_stale_temp_files_are_removed_and_files_have_one_mode(toy_solver, tmp_pa
              if p.is_file() and p.name not in ("log.txt", ".lock")}
     assert modes and all(m == want for m in modes.values()), modes
     # the same helper (and mode) for checkpoints, study frames and the report
-    from bench.store.files import save_frame
+    from cloudpbf.store.files import save_frame
     files.atomic_savez(tmp_path / "c.npz", {"a": 1}, x=np.arange(3))
     save_frame(pd.DataFrame({"a": [1]}), tmp_path / "f.csv")
     for p in (tmp_path / "c.npz", tmp_path / "f.csv"):
@@ -548,7 +548,7 @@ def test_refused_run_leaves_nothing_in_the_cache(tmp_path):
 RUNNER = textwrap.dedent("""
     import sys, time
     sys.path[:0] = [{tests!r}, {root!r}]
-    from bench import runs, solvers
+    from cloudpbf import runs, solvers
     import test_harness_toy as toy
     solvers.ADAPTERS["particles"] = toy.ToyAdapter
     spec = runs.RunSpec("particles", toy.toy_scene(**{{"time.steps": 40}}), seed=1, checkpoint_every=5,
@@ -638,7 +638,7 @@ def cli(*args):
 
 
 def test_cli_misuse_exits_2_naming_the_argument_and_leaves_no_run(tmp_path, monkeypatch):
-    from bench.studies import context
+    from cloudpbf.studies import context
     monkeypatch.setattr(context, "SCHEDULER_TIMEOUT_S", 1.0)
     a_file = tmp_path / "a_file"
     a_file.write_text("x")

@@ -7,11 +7,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import render
-from bench import statistics as st
-from bench.pareto import pareto_front
-from bench.report import plots
-from bench.studies.page import build_report, sections as page_sections
+from cloudpbf import render
+from cloudpbf import statistics as st
+from cloudpbf.pareto import pareto_front
+from cloudpbf.report import plots
+from cloudpbf.studies.page import build_report, sections as page_sections
 
 DEVICE, COMMIT = "Synthetic CPU (2 threads)", "abc123def456"
 
@@ -99,7 +99,7 @@ def write_synthetic_study(out, renders=True):
         "non_adaptive": [{"wall_s": 8.0, "error_self": 0.05}, {"wall_s": 1.0, "error_self": 0.3}],
         "adaptive": [{"wall_s": 4.8, "error_self": 0.05}]}))
     # adaptive-pareto: uniform runs on a power-law front, two adaptive variants, the reference
-    from bench.studies.adaptive_pareto import time_at_error  # noqa: F401  (the study's module imports cleanly)
+    from cloudpbf.studies.adaptive_pareto import time_at_error  # noqa: F401  (the study's module imports cleanly)
     configs = [("uniform-68m", "uniform", "", 68.0, 1e5, 5.0, 0.27), ("uniform-54m", "uniform", "", 54.0, 2e5, 6.4, 0.21),
                ("uniform-43m", "uniform", "", 43.0, 4e5, 9.1, 0.14), ("uniform-34m", "uniform", "", 34.0, 8e5, 14.8, 0.08),
                ("paper-68m", "adaptive", "paper", 68.0, 1.2e5, 4.0, 0.20),
@@ -162,8 +162,8 @@ def write_synthetic_study(out, renders=True):
 
 
 def write_synthetic_shallow_cumulus(data):
-    """The shallow-cumulus study's CSVs (bench.studies.shallow_cumulus) for two seeds, from its own les_table."""
-    from bench.studies.shallow_cumulus import les_table, with_seed_mean
+    """The shallow-cumulus study's CSVs (cloudpbf.studies.shallow_cumulus) for two seeds, from its own les_table."""
+    from cloudpbf.studies.shallow_cumulus import les_table, with_seed_mean
     rows = [{"seed": str(s), "particles": 8000, "spacing_m": 100.0, "stable": True, "step": 500, "cover_mean": c,
              "cover_min": c - 0.05, "cover_max": c + 0.05, "in_shallow_range": 1.0, "onset_s": 400.0,
              "cloud_base_m": 1100.0, "cloud_top_m": 1700.0, "lwp_g_m2": 4.0, "clouds_end": 9, "cf_peak": c / 1.2,
@@ -551,7 +551,7 @@ def test_sweep_and_stress_tables_have_readable_headers_with_units(full_report):
             "density error, worst step", "dt (s)", "heating S_e (K/s)", "unstable particle ids",
             "g_c (m/s²)", "first cloud (s)"} <= set(stress)
     assert {"parameter", "stable", "reason"} <= set(stress)     # names that read as they are stay
-    from bench.report.common import _table
+    from cloudpbf.report.common import _table
     html = _table(pd.DataFrame({"wall_s": [1.5], "other": [2]}), labels={"wall_s": "wall time (s)"})
     assert re.findall(r"<th>([^<]*)</th>", html) == ["wall time (s)", "other"] and "<td>1.5</td>" in html
 
@@ -568,7 +568,7 @@ def test_every_figure_opens_full_size(full_report):
 
 def test_seed_statistics_are_t_intervals_and_welch_tests():
     from scipy import stats as sst
-    from bench.report.inference import format_ci, mean_ci, welch
+    from cloudpbf.report.inference import format_ci, mean_ci, welch
     x = np.array([0.61, 0.72, 0.55, 0.68, 0.70])
     ci = mean_ci(x)
     half = sst.t.ppf(0.975, 4) * x.std(ddof=1) / np.sqrt(5)    # the closed form

@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from bench.studies.page import build_report
+from cloudpbf.studies.page import build_report
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "report_screenshot.py"
 

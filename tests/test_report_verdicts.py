@@ -5,7 +5,7 @@ import re
 
 import pandas as pd
 
-from bench.studies.page import build_report
+from cloudpbf.studies.page import build_report
 
 DEVICE, COMMIT = "Synthetic CPU (2 threads)", "abc123def456"
 
@@ -19,7 +19,7 @@ def _sections(page):
 def test_table1_shows_the_best_variant_row_beside_the_paper_rows(tmp_path):
     """A fifth Table 1 row (the adaptive study's best variant) is drawn as 'adaptive (name)', compared with the
     paper's adaptive row and its example's non-adaptive row, and leaves the paper rows' speed-ups alone."""
-    from bench.report.common import step_time_ratios
+    from cloudpbf.report.common import step_time_ratios
     rows = pd.DataFrame({"example": ["growing"] * 3, "mode": ["non-adaptive", "adaptive", "adaptive"],
                          "variant": ["", "", "thermal-68m"], "total_ms": [8.0, 4.0, 5.0]})
     assert step_time_ratios(rows) == {"growing": 2.0}
@@ -49,7 +49,7 @@ def test_stress_usable_needs_the_converged_reference_and_never_an_unstable_run(t
                 "simulated time) &lt;= 0.1")
     assert expected in sections["stress"] and expected in sections["summary"]
     assert "largest stable dt (no blow-up, accuracy aside): 4 s" in sections["stress"]
-    from bench.studies.stress import stress_frame
+    from cloudpbf.studies.stress import stress_frame
     frame = stress_frame(pd.read_csv(data / "stress.csv"))
     assert frame["usable"].tolist() == [True, True, False, False]      # 8 s: unstable, whatever the CSV says
 
@@ -70,8 +70,8 @@ def test_sweep_verdict_card_links_to_the_data_behind_it_and_says_no_difference(t
 
 
 def test_adaptive_card_gives_ms_per_step_as_the_median_over_seeds_with_its_spread(tmp_path):
-    from bench.report.common import Inputs
-    from bench.studies.adaptive_pareto.report import _seed_ms
+    from cloudpbf.report.common import Inputs
+    from cloudpbf.studies.adaptive_pareto.report import _seed_ms
     (tmp_path / "data").mkdir()
     pd.DataFrame({"config": ["best"] * 4 + ["other"], "seed": [0, 1, 2, 3, 0],
                   "stable": [True, True, True, False, True],

@@ -1,9 +1,9 @@
-"""The step's bandwidth roofline (bench.roofline) and the scaling study's roofline columns."""
+"""The step's bandwidth roofline (cloudpbf.roofline) and the scaling study's roofline columns."""
 import pandas as pd
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from bench import roofline
+from cloudpbf import roofline
 from pbf_cuda import load_scene
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -47,7 +47,7 @@ def test_cpu_copy_bandwidth_is_measured():
 
 
 def test_no_step_beats_its_roofline(tmp_path):
-    from bench.studies.scaling import pbf_scaling
+    from cloudpbf.studies.scaling import pbf_scaling
     frame = pbf_scaling([2000, 6000], backend="cpu", runs_root=tmp_path, timing_steps=2, quiet=True)
     assert frame["roofline_ms"].notna().all() and (frame["roofline_ms"] > 0).all()
     assert (frame["step_ms"] >= frame["roofline_ms"]).all()
@@ -58,7 +58,7 @@ def test_no_step_beats_its_roofline(tmp_path):
 
 @pytest.mark.gpu
 def test_cuda_run_reports_its_peak_memory_and_roofline(tmp_path):
-    from bench.studies.scaling import pbf_scaling
+    from cloudpbf.studies.scaling import pbf_scaling
     frame = pbf_scaling([200_000], backend="cuda", runs_root=tmp_path, timing_steps=3, quiet=True)
     row = frame.iloc[0]
     # The solver's arrays are ~224-250 B per slot, plus sort scratch, lists and the boundary: a few hundred B.

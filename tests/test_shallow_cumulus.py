@@ -1,4 +1,4 @@
-"""The shallow-cumulus study (bench.studies.shallow_cumulus): its metrics on a synthetic run (closed forms),
+"""The shallow-cumulus study (cloudpbf.studies.shallow_cumulus): its metrics on a synthetic run (closed forms),
 its comparison with the LES cases, and the whole study at the smoke scale."""
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.studies import shallow_cumulus as sc
-from bench.studies.context import INLINE, StudyContext
-from bench.studies.scales import SCALES
+from cloudpbf.studies import shallow_cumulus as sc
+from cloudpbf.studies.context import INLINE, StudyContext
+from cloudpbf.studies.scales import SCALES
 from pbf_cuda import load_scene
 
 

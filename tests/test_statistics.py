@@ -5,8 +5,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import statistics as st
-from bench.store.files import save_frame
+from cloudpbf import statistics as st
+from cloudpbf.store.files import save_frame
 
 # --------------------------------------------------------------------------------------------
 # a box of cloud on a grid: every diagnostic has a closed form

@@ -243,7 +243,7 @@ def test_every_setting_keeps_the_invariants_or_is_reported(name, dt_factor, iter
 
 def test_cli_run_of_a_collapsing_scene_exits_non_zero_and_caches_no_result(tmp_path):
     env = {"CLOUDPBF_RUNS": str(tmp_path / "runs"), "PATH": "/usr/bin:/bin", "OMP_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, "-m", "bench.cli", "run", "dam_break", "--set", "time.dt=1", "--steps", "20",
+    out = subprocess.run([sys.executable, "-m", "cloudpbf.cli", "run", "dam_break", "--set", "time.dt=1", "--steps", "20",
                           "--particles", "2000", "--backend", "cpu"], capture_output=True, text=True, env=env,
                          timeout=300)
     assert out.returncode != 0

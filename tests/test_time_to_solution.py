@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.studies import time_to_solution as tts
-from bench.studies.scales import SCALES
+from cloudpbf.studies import time_to_solution as tts
+from cloudpbf.studies.scales import SCALES
 
 TIMES = np.array([100.0, 200.0, 300.0, 400.0])
 REF = {"cover": np.array([0.1, 0.2, 0.3, 0.4]), "volume": np.array([1e8, 3e8, 5e8, 7e8]),
@@ -137,7 +137,7 @@ def test_plan_has_one_default_a_separate_reference_and_equal_end_times(paper):
 
 
 def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
-    from bench.studies.context import INLINE, StudyContext
+    from cloudpbf.studies.context import INLINE, StudyContext
     sizes = tts.Sizes(spacing_ratios=(1.0,), dts=(16.0,), grid_cfls=(), cfls=(0.5,), iterations=(), dt_max=16.0,
                       divergence_iterations=(), adaptive=False, reference_dt=8.0, default_dt=16.0, end_time=64.0,
                       times=2, box=tts.SMOKE_BOX, spacing=200.0, analysis_grid=(8, 8, 8))
@@ -166,15 +166,15 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
     assert verdict["scene"] == "growing" and verdict["default"]["setting"] == "200m-dt16"
     again = tts.rebuild(data, "growing", replicates=20)
     assert again["verdict"]["device"] == verdict["device"]
-    from bench.report.common import Inputs, Section
-    from bench.studies.time_to_solution.report import time_to_solution_section as section
+    from cloudpbf.report.common import Inputs, Section
+    from cloudpbf.studies.time_to_solution.report import time_to_solution_section as section
     sec = Section("time_to_solution", "Time to solution")
     section(Inputs(ctx.out), sec, None)
     assert any(b.kind == "image" for b in sec.blocks) and not sec.missing
 
 
 def test_end_time_enters_the_run_key_only_when_set():
-    from bench import runs
+    from cloudpbf import runs
     from pbf_cuda.scene import load_scene
     spec = runs.RunSpec("particles", load_scene("growing"), backend="cpu", steps=10)
     assert "end_time" not in spec.options()                 # the keys of runs without it are unchanged

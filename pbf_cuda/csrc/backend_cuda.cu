@@ -33,7 +33,7 @@ std::pair<std::size_t, std::size_t> cuda_memory_info() {
 }
 
 // Device-to-device copy bandwidth of device 0 in bytes per second, counting every byte read and every byte
-// written (2 nbytes per copy): the denominator of the step's bandwidth roofline (bench/roofline.py). The mean
+// written (2 nbytes per copy): the denominator of the step's bandwidth roofline (cloudpbf/roofline.py). The mean
 // over `repeats` copies after one warm-up copy, timed with events; 0 without a device or the memory.
 double cuda_copy_bandwidth(std::size_t nbytes, int repeats) {
     if (cuda_device_count() == 0 || nbytes == 0 || repeats < 1) return 0.0;
