@@ -47,7 +47,7 @@ from cloudpbf.store.lock import locked
 from cloudpbf.store.manifest import (finished_files, info_checksum, manifest, now, quarantine, quarantine_entry,
                                   verify_run)
 from cloudpbf.store.result import RunResult
-from cloudpbf.store.safe import StoreError, UnsafeFileError, append_line, entry_kind, read_json, store_error
+from cloudpbf.store.safe import StoreError, append_line, entry_kind, read_json, store_error
 from cloudpbf_io.files import atomic_write_json, remove_stale_temps
 from cloudpbf_io.progress import progress_bar as tqdm
 from pbf_cuda.protocol import InstabilityError

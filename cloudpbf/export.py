@@ -48,7 +48,7 @@ import numpy as np
 from cloudpbf.solvers import ADAPTERS, particles_to_xarray  # noqa: F401  (particles_to_xarray: public here too)
 from cloudpbf.store.identity import effective_seed
 from cloudpbf.store.manifest import read_result, verify_run
-from cloudpbf.store.safe import UnsafeFileError, entry_kind, read_bytes, read_json
+from cloudpbf.store.safe import entry_kind, read_bytes, read_json
 from cloudpbf.store.targets import (NETCDF_ATTR, ExportError, check_free_space, disk_error, foreign_entries,
                                   marker_of, staged)
 from cloudpbf_io.export import FIELD_ATTRS, read_pvd, write_bgeo_series, write_particle_series

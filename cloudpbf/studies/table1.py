@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 import json
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
