@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpbf.environment import commit, device_description
+from cloudpbf.store.files import save_frame
 from cloudpbf.statistics import particle_diagnostics
 from cloudpbf.studies.adaptive_pareto import SERIES, _relative_l2
 from pbf_cuda import Simulation, load_scene
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
     frame["device"], frame["commit"] = device_description(a.backend), commit()
     print(frame.to_string(index=False))
     if a.out:
-        frame.to_csv(a.out, index=False)
+        save_frame(frame, a.out)
     return 0
 
 

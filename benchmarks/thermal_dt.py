@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from cloudpbf.environment import commit, device_description
+from cloudpbf.store.files import save_frame
 from pbf_cuda import Simulation, load_scene
 
 BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 60.0}
@@ -59,6 +60,8 @@ def main(argv=None) -> int:
     parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--out", default=None, help="CSV to write (default: print only)")
     args = parser.parse_args(argv)
+    if args.out and not args.out.lower().endswith((".csv", ".parquet")):
+        parser.error(f"--out {args.out!r}: expected a .csv or .parquet file name")
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -75,7 +78,7 @@ def main(argv=None) -> int:
     frame["device"], frame["commit"] = device_description(args.backend), commit()
     print(frame.to_string(index=False))
     if args.out:
-        frame.to_csv(args.out, index=False)
+        save_frame(frame, args.out)
     return 0
 
 

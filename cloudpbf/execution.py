@@ -375,13 +375,8 @@ def _brackets_a_time(times_left: list, t: float, sim, controlled: bool) -> bool:
 
 def _steps_below(remaining: float, sim) -> int:
     """How many CFL-controlled steps surely stay short of `remaining` more seconds even if each grew by the control's
-    largest factor (1.25); at least 1."""
-    dt = float(getattr(sim, "time_step", 0.0) or 0.0)
-    n, covered = 0, 0.0
-    while dt > 0.0 and n < 10**6 and covered + dt * 1.25 ** n < remaining * (1.0 - 1e-9):
-        covered += dt * 1.25 ** n
-        n += 1
-    return max(1, n)
+    largest factor (1.25): one fewer than reach it (_steps_toward); at least 1."""
+    return max(1, _steps_toward(remaining, sim) - 1)
 
 
 def _steps_toward(remaining: float, sim) -> int:
