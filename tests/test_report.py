@@ -664,6 +664,19 @@ def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there
     after = _sections(build_report(out).read_text())["compare"]
     assert after.count("<img") == before.count("<img") + 1
     assert "Convergence in the full domain (convergence.csv" in after and COMMIT[:7] in after
+    assert "Order of convergence" in after and "flat: no change with h" in after      # flat series: no order
+    # per-seed rows beside the means: the particles' cover follows 0.6 + 0.1 (h / 34)^2, the grid stays flat
+    rows = [{"solver": m, "method": m, "parameter": p, "resolution_m": r, "stable": True, "seed": str(seed),
+             "cover_mean": (0.6 + 0.1 * (r / 34.0) ** 2 if m == "particles" else 0.6) + 0.001 * seed,
+             "device": DEVICE, "commit": COMMIT}
+            for m, p in (("particles", "spacing"), ("grid", "cells")) for r in (68.0, 54.0, 43.0, 34.0) for seed in range(3)]
+    frame = pd.DataFrame(rows)
+    means = frame.groupby(["solver", "method", "parameter", "resolution_m", "stable", "device", "commit"],
+                          as_index=False)["cover_mean"].mean().assign(seed="mean")
+    pd.concat([frame, means]).to_csv(out / "data" / "convergence.csv", index=False)
+    seeded = _sections(build_report(out).read_text())["compare"]
+    assert "mean over 3 seeds" in seeded and "bootstrap, 3 seeds" in seeded
+    assert "<td>2 [2, 2]</td>" in seeded                                  # p = 2 exactly: the interval closes on it
 
 
 def test_shallow_cumulus_section_shows_the_statistics_beside_the_les_cases_and_the_renders(full_report):

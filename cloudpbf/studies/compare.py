@@ -28,7 +28,8 @@ from cloudpbf.report.catalogue import GlanceCard
 from cloudpbf.report.common import (Inputs, Section, _mean_sd, _measured_total, _missing, _paper_table, _provenance,
                                  _table, step_time_ratios)
 from cloudpbf.report.glance import Card, data_link, missing_card, section_link
-from cloudpbf.report.inference import LEVEL, describes_no_difference, difference_ci, format_ci, mean_ci, welch
+from cloudpbf.report.inference import (LEVEL, convergence_orders, describes_no_difference, difference_ci, format_ci,
+                                      mean_ci, welch)
 from cloudpbf import runs
 from cloudpbf.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, click, refusals, scene_arg, study_context)
@@ -405,19 +406,74 @@ def _cycling(inp: Inputs, sec: Section) -> None:
             "with w > 1e-5 kg/kg are drawn, the grid's cloud water as a volume."))
 
 
+def _convergence_means(conv: pd.DataFrame) -> pd.DataFrame:
+    """The rows the convergence plot draws: the mean rows (seed "mean") where convergence.csv has per-seed rows
+    beside them, else every row (a CSV of single runs)."""
+    if "seed" not in conv.columns:
+        return conv
+    means = conv[conv["seed"].astype(str) == "mean"]
+    return means if len(means) else conv
+
+
+def _fmt_interval(value: float, lo: float, hi: float) -> str:
+    if not math.isfinite(value):
+        return "–"
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"{value:.3g}"
+    return f"{value:.3g} [{lo:.3g}, {hi:.3g}]"
+
+
+def convergence_table(conv: pd.DataFrame) -> pd.DataFrame:
+    """Per solver and statistic of convergence.csv: the fitted order p of S(h) = S_inf + C h^p with its 90%
+    interval, S_inf with its interval, the resolutions (m) and seeds behind the fit, how the interval was made and
+    why no order was determined where none was (cloudpbf.report.inference.convergence_orders)."""
+    runs_ = conv[conv["parameter"].isin(["spacing", "cells"])] if "parameter" in conv.columns else conv
+    if "stable" in runs_.columns:
+        runs_ = runs_[runs_["stable"].map(plots._truthy)]
+    columns = [c for c, _ in plots.CONVERGENCE_PANELS]
+    fits = convergence_orders(runs_, columns, by="solver")
+    labels = dict(plots.CONVERGENCE_PANELS)
+    rows = []
+    for fit in fits.itertuples():
+        h = pd.to_numeric(runs_.loc[runs_["solver"] == fit.solver, "resolution_m"], errors="coerce").dropna()
+        rows.append({"solver": fit.solver, "statistic": labels.get(fit.statistic, fit.statistic),
+                     "order p [90%]": _fmt_interval(fit.order, fit.order_lo, fit.order_hi),
+                     "S_inf [90%]": _fmt_interval(fit.limit, fit.limit_lo, fit.limit_hi),
+                     "h (m)": f"{h.max():.3g}..{h.min():.3g} ({fit.resolutions})" if len(h) else "–",
+                     "seeds": fit.seeds,
+                     "interval": fit.interval, "no order because": fit.reason or "–"})
+    return pd.DataFrame(rows)
+
+
 def _convergence(inp: Inputs, sec: Section) -> None:
     """Both solvers against resolution in the scene's own domain (convergence.csv; docs/validation.md,
-    "Convergence of both solvers with resolution")."""
+    "Convergence of both solvers with resolution"), with each statistic's fitted order of convergence."""
     conv, path = inp.csv("convergence")
     if conv is None:
         return
-    figure = plots.convergence_plot(conv)
+    means = _convergence_means(conv)
+    figure = plots.convergence_plot(means)
     if figure is None:
         return
+    seeds = pd.to_numeric(conv["seed"], errors="coerce").nunique() if "seed" in conv.columns else 0
+    which = f"mean over {seeds} seeds" if seeds > 1 else "seed 0"
     sec.add("image", figure, caption=(
         f"Convergence in the full domain ({path.name}, {_provenance(conv)}): each solver's cloud statistics "
-        "(time means over the cloudy period, seed 0) against its resolution, particle spacing or grid cell size "
+        f"(time means over the cloudy period, {which}) against its resolution, particle spacing or grid cell size "
         "(finer to the right); where the lines approach each other, the solvers converge toward one answer."))
+    table = convergence_table(conv)
+    if len(table):
+        sec.add("table", _table(table), caption=(
+            "Order of convergence: S(h) = S_inf + C h^p fitted by least squares to each statistic's seed mean "
+            "against the resolution h (Richardson's model; exact with three resolutions). A larger p converges "
+            "faster; S_inf is the extrapolated h -> 0 value. Intervals (90%): a percentile bootstrap over seeds "
+            "where per-seed rows exist, else the fit's covariance (t with n - 3 degrees of freedom). A series that "
+            "is flat, not monotone in h, or whose changes do not shrink as a power of h has no order: its "
+            "resolution effect is not separated from run-to-run noise, or does not follow one power of h (a p at the "
+            "search bound, 0.05 or 8) (docs/validation.md)."))
+        if not (table["order p [90%]"] != "–").any():
+            sec.add("note", "no statistic of either solver has a determined order of convergence over these "
+                            "resolutions (the table says why for each).", level="warn")
 
 
 def _compare_and_cycling(inp: Inputs, sec: Section, env: dict | None) -> None:
