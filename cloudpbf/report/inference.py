@@ -139,6 +139,8 @@ ORDER_BOUNDS = (0.05, 8.0)
 """The orders p searched; a fit that ends on either bound is reported as not determined."""
 BOOTSTRAP_DRAWS = 400
 """Resamplings of the seeds behind a bootstrap interval."""
+MIN_BOOTSTRAP_SEEDS = 3
+"""The fewest seeds at every resolution for a bootstrap interval (two seeds give three distinct draws)."""
 MIN_DETERMINED = 0.5
 """The smallest fraction of bootstrap draws that must determine an order for their interval to be reported."""
 
@@ -209,10 +211,10 @@ def convergence_order(resolution, values, seeds=None, level: float = ORDER_LEVEL
 
     resolution, values: one entry per run; seeds: each run's seed (None: the runs are single ones, or means).
     The fit is to the mean over seeds at each h (at least three distinct h; a least-squares fit profiled over p,
-    exact with three).  Interval: with at least two seeds at every h, a percentile bootstrap over seeds (seed ids
+    exact with three).  Interval: with at least MIN_BOOTSTRAP_SEEDS seeds at every h, a percentile bootstrap over seeds (seed ids
     drawn with replacement and kept across h, since one seed's heating pattern is the same at every h), reported
     where at least MIN_DETERMINED of the draws determine an order; otherwise, with more than three h, the fit's
-    covariance (a t interval with n - 3 degrees of freedom); with three h and one seed, none.  A series that is
+    covariance of the seed means (a t interval with n - 3 degrees of freedom); with three h, none.  A series that is
     flat, not monotone, or whose differences do not shrink as a power of h gives an order "not determined" with
     the reason, never an error."""
     frame = pd.DataFrame({"h": pd.to_numeric(pd.Series(list(resolution)), errors="coerce"),
@@ -230,7 +232,7 @@ def convergence_order(resolution, values, seeds=None, level: float = ORDER_LEVEL
         return _undetermined(reason, n_h, n_seeds)
     nan = math.nan
     tail = (1.0 - level) / 2.0
-    if n_seeds >= 2:
+    if n_seeds >= MIN_BOOTSTRAP_SEEDS:
         gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
         columns = table.to_numpy(float)
         fits = []

@@ -110,7 +110,7 @@ def convergence_command(
     resolutions: Annotated[Optional[str], typer.Option(
         help="particle spacings = grid cell sizes, m, comma-separated (default: the scale's)")] = None,
     seeds: Annotated[Optional[int], typer.Option(min=1, max=1000, help="noise seeds per resolution "
-                                                 "(>= 2 for bootstrap intervals on the orders)")] = None,
+                                                 "(>= 3 for bootstrap intervals on the orders)")] = None,
     out: OutOpt = DEFAULT_OUT, runs_root: RunsRootOpt = None, scale: ScaleOpt = ScaleName.auto,
     backend: BackendOpt = Backend.auto, workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
     quiet: QuietOpt = False, gpus: GpusOpt = None,
@@ -134,7 +134,7 @@ register(Study("convergence", order=35, sections=("compare",), outputs=("converg
                scale={"convergence_resolutions": {"smoke": (100.0, 80.0, 64.0, 50.0),
                                                   "cpu": (100.0, 86.0, 74.0, 64.0),
                                                   "gpu": (68.0, 54.0, 43.0, 34.0, 27.0)},
-                      "convergence_seeds": {"smoke": 2, "cpu": 3, "gpu": 3},
+                      "convergence_seeds": {"smoke": 3, "cpu": 3, "gpu": 3},
                       # the smoke scale's small box (None: the scene's own domain and steps)
                       "convergence_box": {"smoke": SMOKE_BOX, "cpu": None, "gpu": None}},
                command=convergence_command))
