@@ -28,7 +28,11 @@ from pbf_cuda import Simulation, load_scene
 
 BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 60.0}
 VARIANTS = {"default": {}, "noscorr": {"pbf.scorr_k": 0.0}, "noxsph": {"pbf.xsph": 0.0},
-            "nokappa": {"smoothing.kappa": 0.0}, "it8": {"pbf.iterations": 8}}
+            "nokappa": {"smoothing.kappa": 0.0}, "it8": {"pbf.iterations": 8},
+            "keepanomaly": {"pbf.shift_keeps_anomaly": True},
+            "gradcorr": {"pbf.gradient_correction": True},
+            "gradcorr_noscorr": {"pbf.gradient_correction": True, "pbf.scorr_k": 0.0},
+            "scorr_sqrt": {"pbf.scorr_dt_power": 0.5}, "scorr_lin": {"pbf.scorr_dt_power": 1.0}}
 SAMPLE_S = 50.0
 
 

@@ -78,6 +78,7 @@ IGNORED = {
     "pbf.scorr_n": "the particles' tensile correction s_corr; a grid has no particle clumping",
     "pbf.scorr_dq": "the particles' tensile correction s_corr; a grid has no particle clumping",
     "pbf.scorr_fine": "the particles' tensile correction s_corr; a grid has no particle clumping",
+    "pbf.scorr_dt_power": "the particles' tensile correction s_corr; a grid has no particle clumping",
     "pbf.divergence_iterations": _PROJECTION,
     "pbf.divergence_tolerance": _PROJECTION,
     "pbf.gradient_correction": _PROJECTION,

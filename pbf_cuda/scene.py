@@ -148,6 +148,10 @@ class PBF:
     scorr_dq: float = _spec(0.2, 0.0, 0.99, "", "tensile s_corr reference distance dq / h")
     scorr_fine: float = _spec(1.0, 0.0, 1.0, "", "weight of s_corr on pairs with a particle finer than level 0 "
                                                 "(adaptive runs; 0: s_corr acts between level-0 particles only)")
+    scorr_dt_power: float = _spec(0.0, 0.0, 1.0, "",
+                                  "s_corr's k scaled by (dt / time.reference_dt)^power, exactly k at the reference "
+                                  "step: 0 keeps it per iteration; 0.5 keeps the random walk of its shifts per unit "
+                                  "time (docs/design.md, The time step)")
     xsph: float = _spec(0.01, 0.0, 1.0, "", "XSPH viscosity c")
     viscosity: float = _spec(0.0, 0.0, 1e6, "m^2/s", "kinematic viscosity nu (pairwise SPH Laplacian, conserves "
                                                      "momentum); explicit: keep nu dt / spacing^2 below 0.1")

@@ -50,6 +50,7 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(int, scorr_n, "pbf.scorr_n", 4)                                                                              \
     S(float, scorr_dq, "pbf.scorr_dq", 0.2f)               /* dq / h */                                            \
     S(float, scorr_fine, "pbf.scorr_fine", 1.0f)           /* s_corr weight on pairs with a particle finer than level 0 */\
+    S(float, scorr_dt_power, "pbf.scorr_dt_power", 0.0f)   /* s_corr k times (dt / reference_dt)^power (time_step.h) */\
     S(bool, velocity_projection, "", false)                /* pbf.projection == "velocity" */                      \
     S(bool, neighbor_list, "pbf.neighbor_list", true)      /* per-step neighbour lists (neighbor_list.h) */        \
     S(int, divergence_iterations, "pbf.divergence_iterations", 4)                                                  \

@@ -241,13 +241,15 @@ void solve_density(SolverData& d, const WallNeighbourhoods& walls, bool first_su
     StepSums* sums = raw(d.step_sums);
     if (closed_column)
         reduce_into(d.n, VerticalMomentum{raw(d.pred), raw(d.pred)}, Double2{0.0, 0.0}, Double2Add{}, &sums->shift_before);
+    ConstraintParams cp = d.cp;                 // s_corr's k at this step (time_step.h: pbf.scorr_dt_power)
+    cp.scorr_k_lambda *= d.rates.scorr;
     for (int it = 0; it < d.p.iterations; ++it) {
         CellRanges fl = d.fluid_ranges(d.pred);
         if (!(it == 0 && first_summed))
             parallel_for_in_order(d.n, d.list_pass_order(),
                                   DensityLambda<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.density)});
         parallel_for_in_order(d.n, d.list_pass_order(),
-                              PositionCorrection<Policy>{d.grid, fl, walls, d.radii, d.cp, raw(d.lambda), raw(d.pos_tmp)});
+                              PositionCorrection<Policy>{d.grid, fl, walls, d.radii, cp, raw(d.lambda), raw(d.pos_tmp)});
         d.pred.swap(d.pos_tmp);
     }
     if (closed_column) {

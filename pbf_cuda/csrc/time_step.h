@@ -38,6 +38,7 @@ struct StepRates {
     float xsph;             // XSPH c(dt)
     float kappa;            // eq. 17b's kappa(dt)
     float smoothing_beta;   // beta_0 at dt (eq. 17), m^2
+    float scorr = 1.0f;     // s_corr's k at dt relative to its stated value: (dt / dt_ref)^pbf.scorr_dt_power
 };
 
 // c(dt) = 1 - (1 - c)^(dt / dt_ref): a relaxation by the fraction c per dt_ref, applied over dt.
@@ -55,6 +56,7 @@ inline StepRates step_rates(const Params& p) {
     r.kappa = float(per_step_fraction(p.kappa, dt, ref));
     r.smoothing_beta = p.smoothing_beta;
     if (dt != ref && p.kappa > 0.0f) r.smoothing_beta = float(double(p.smoothing_beta) * (double(r.kappa) / p.kappa));
+    if (dt != ref && p.scorr_dt_power > 0.0f) r.scorr = float(std::pow(dt / ref, double(p.scorr_dt_power)));
     return r;
 }
 
