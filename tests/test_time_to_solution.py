@@ -166,6 +166,9 @@ def test_a_tiny_real_run_writes_the_outputs_and_the_report_section(tmp_path):
     assert verdict["scene"] == "growing" and verdict["default"]["setting"] == "200m-dt16"
     again = tts.rebuild(data, "growing", replicates=20)
     assert again["verdict"]["device"] == verdict["device"]
+    (data / "time_to_solution_verdict.json").unlink()           # no verdict left: device and commit of the runs
+    again = tts.rebuild(data, "growing", replicates=20)
+    assert (again["verdict"]["device"], again["verdict"]["commit"]) == (verdict["device"], verdict["commit"])
     from cloudpbf.report.common import Inputs, Section
     from cloudpbf.studies.time_to_solution.report import time_to_solution_section as section
     sec = Section("time_to_solution", "Time to solution")

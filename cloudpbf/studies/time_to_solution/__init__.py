@@ -355,6 +355,10 @@ def rebuild(data: Path, scene_name: str = "growing", replicates: int = BOOTSTRAP
     meta = per_setting[["setting", "group", "default", "spacing_m", "dt", "cfl", "iterations",
                         "divergence_iterations", "adaptive"]]
     per_run, series = pd.read_csv(paths["_runs"]), pd.read_csv(paths["_series"])
+    for col in ("device", "commit"):     # without the old verdict: the runs' own, where they agree
+        values = per_setting[col].dropna().astype(str).unique() if col in per_setting else []
+        if col not in extra and len(values) == 1:
+            extra[col] = values[0]
     frame, verdict = analyse(per_run, series, meta, extra, replicates)
     for col in ("device", "commit"):
         frame[col] = per_setting[col] if col in per_setting else extra.get(col)
