@@ -34,6 +34,7 @@ __all__ = [
     "Smoothing",
     "Adaptive",
     "Wave",
+    "Forcing",
     "load_scene",
     "scene_from_dict",
     "SCENE_DIR",
@@ -253,6 +254,42 @@ class Adaptive:
                                 "0.5, so the check stays inside one cell block (see adaptivity.h)")
 
 
+_KNOTS = "; piecewise linear through the 4 knots of the heights field, constant below the first and above the last"
+
+
+@dataclass
+class Forcing:
+    """Large-scale forcing of the BOMEX case (Siebesma et al. 2003): subsidence, radiative cooling and a moisture
+    tendency, each a profile of height y through 4 knots (pbf_cuda/csrc/thermodynamics.h, L1-L3). Needs an
+    [atmosphere]; every value 0 (the default) is no forcing."""
+    subsidence_heights: list = _spec([0.0, 1000.0, 2000.0, 3000.0], 0.0, 1e5, "m",
+                                     "heights of the knots of w_s(y), non-decreasing", length=4)
+    subsidence_values: list = _spec([0.0, 0.0, 0.0, 0.0], -1.0, 1.0, "m/s",
+                                    "large-scale vertical velocity w_s at the knots (< 0: subsidence); T and vapor "
+                                    "change at -w_s dtheta0/dy and -w_s dv0/dy of the environment profiles" + _KNOTS,
+                                    length=4)
+    radiative_heights: list = _spec([0.0, 1000.0, 2000.0, 3000.0], 0.0, 1e5, "m",
+                                    "heights of the knots of the radiative rate, non-decreasing", length=4)
+    radiative_values: list = _spec([0.0, 0.0, 0.0, 0.0], -1e-2, 1e-2, "K/s",
+                                   "radiative heating rate of theta at the knots (< 0: cooling; BOMEX: -2 K/day = "
+                                   "-2.3148e-5 K/s)" + _KNOTS, length=4)
+    moisture_heights: list = _spec([0.0, 1000.0, 2000.0, 3000.0], 0.0, 1e5, "m",
+                                   "heights of the knots of the moisture tendency, non-decreasing", length=4)
+    moisture_values: list = _spec([0.0, 0.0, 0.0, 0.0], -1e-5, 1e-5, "1/s",
+                                  "large-scale tendency of the vapor mixing ratio at the knots, kg/kg per s "
+                                  "(BOMEX: -1.2e-8 below 300 m)" + _KNOTS, length=4)
+
+    @property
+    def active(self) -> bool:
+        """Whether any profile is non-zero (else the solvers skip the forcing)."""
+        return any(v != 0.0 for v in (*self.subsidence_values, *self.radiative_values, *self.moisture_values))
+
+    def profiles(self) -> dict:
+        """{"subsidence" | "radiative" | "moisture": (heights, values)} as tuples of floats."""
+        return {k: (tuple(map(float, getattr(self, k + "_heights"))), tuple(map(float, getattr(self, k + "_values"))))
+                for k in ("subsidence", "radiative", "moisture")}
+
+
 @dataclass
 class Wave:
     """Optional initial internal gravity wave (stream function psi = A sin(kx x) sin(ky y))."""
@@ -270,8 +307,9 @@ SECTIONS = {
     "smoothing": Smoothing,
     "adaptive": Adaptive,
     "wave": Wave,
+    "forcing": Forcing,
 }
-OPTIONAL_SECTIONS = ("atmosphere", "wave")
+OPTIONAL_SECTIONS = ("atmosphere", "wave", "forcing")
 
 
 @dataclass
@@ -286,6 +324,7 @@ class Scene:
     smoothing: Smoothing = field(default_factory=Smoothing)
     adaptive: Adaptive = field(default_factory=Adaptive)
     wave: Wave | None = None
+    forcing: Forcing | None = None
 
     # ---- derived quantities (all SI) -------------------------------------------------
     @property
@@ -296,6 +335,11 @@ class Scene:
     @property
     def thermodynamics(self) -> bool:
         return self.atmosphere is not None
+
+    @property
+    def large_scale_forcing(self) -> bool:
+        """A [forcing] section with a non-zero profile (and an atmosphere for it to act on)."""
+        return self.thermodynamics and self.forcing is not None and self.forcing.active
 
     @property
     def smoothing_active(self) -> bool:

@@ -161,3 +161,11 @@ def cross_checks(scene: Scene, source: str):
                          f"when time.cfl > 0 (the controlled step starts at dt)")
     if scene.wave is not None and scene.domain.boundary[1] != "wall":
         raise SceneError(f"{source}: [wave] needs domain.boundary[1] = 'wall'")
+    if scene.forcing is not None:
+        if scene.atmosphere is None:
+            raise SceneError(f"{source}: [forcing] acts on the temperature and vapor of an atmosphere; "
+                             "it needs an [atmosphere] section")
+        for kind in ("subsidence", "radiative", "moisture"):
+            z = getattr(scene.forcing, kind + "_heights")
+            if any(b < a for a, b in zip(z, z[1:])):
+                raise SceneError(f"{source}: forcing.{kind}_heights = {short(z)} must be non-decreasing (m)")

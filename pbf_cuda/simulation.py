@@ -30,7 +30,8 @@ __all__ = ["Simulation", "InstabilityError", "available_backends"]
 CHECKPOINT_VERSION = 1
 # The running sums of stats() a checkpoint carries, in the solver's order (StepBudget::totals).
 BUDGET_TOTALS = ("heat_source", "heat_latent", "heat_adiabatic", "heat_smoothing", "heat_relaxation",
-                 "water_relaxation", "water_rain")
+                 "water_relaxation", "water_rain", "heat_subsidence", "heat_radiation", "water_subsidence",
+                 "water_tendency")
 
 
 def _core():
@@ -82,6 +83,7 @@ DERIVED = {
     "lambda_ref": ("domain.size", "particles.spacing", "particles.kernel_ratio", "particles.rest_density"),
     "velocity_projection": ("pbf.projection",),
     "thermodynamics": ("atmosphere",),
+    "large_scale_forcing": ("atmosphere", "forcing"),
     "saturation": ("atmosphere.saturation_a", "atmosphere.saturation_b", "atmosphere.saturation_c"),
     "heating_layer": ("domain.size", "particles.spacing"),
     "vapor_relative": ("atmosphere.vapor_profile",),
@@ -130,6 +132,7 @@ def derived_params(scene: Scene, capacity: int, core=None) -> dict:
     out["lambda_ref"] = 1.0 / grad2                     # lambda of a unit constraint violation
     out["velocity_projection"] = scene.pbf.projection == "velocity"
     out["thermodynamics"] = scene.thermodynamics
+    out["large_scale_forcing"] = scene.large_scale_forcing
     if scene.thermodynamics:
         a = scene.atmosphere
         out["saturation"] = [a.saturation_a, a.saturation_b, a.saturation_c]

@@ -76,11 +76,13 @@ def test_every_solver_parameter_is_copied_from_a_scene_field_with_its_default_or
 
 def base_scene():
     """Every section present and every switch on, so each field can matter: adaptive with the look-ahead
-    criterion, smoothing, velocity projection, a wave, an explicit fill box."""
+    criterion, smoothing, velocity projection, a wave, an explicit fill box, the large-scale forcing."""
     return load_scene("growing_adaptive", **{
         "domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0,
         "particles.fill_min": [0.0, 0.0, 0.0], "particles.fill_max": [1200.0, 1600.0, 1200.0],
-        "adaptive.criterion": "lookahead", "smoothing.fields": ["temperature"], "wave.amplitude": 0.5})
+        "adaptive.criterion": "lookahead", "smoothing.fields": ["temperature"], "wave.amplitude": 0.5,
+        "forcing.subsidence_values": [-1e-3, -1e-3, 0.0, 0.0], "forcing.radiative_values": [-1e-5, 0.0, 0.0, 0.0],
+        "forcing.moisture_values": [-1e-8, 0.0, 0.0, 0.0]})
 
 
 def params_of(scene, capacity=4096):

@@ -75,6 +75,7 @@ public:
             throw std::invalid_argument("backend = '" + backend + "': allowed 'cpu', 'cuda'");
         }
         thermodynamics_ = p.thermodynamics;
+        large_scale_ = p.thermodynamics && p.large_scale_forcing;
     }
 
     void set_fluid(FloatArray pos, FloatArray vel, FloatArray temperature, FloatArray vapor, FloatArray cloud,
@@ -188,12 +189,23 @@ public:
             d["heat_relaxation_total"] = b.totals[4];
             d["water_relaxation_total"] = b.totals[5];
             d["water_rain_total"] = b.totals[6];
+            if (large_scale_) {   // only with a [forcing] section: the stats of every other scene stay as they were
+                d["heat_subsidence"] = b.heat_subsidence;
+                d["heat_radiation"] = b.heat_radiation;
+                d["water_subsidence"] = b.water_subsidence;
+                d["water_tendency"] = b.water_tendency;
+                d["heat_subsidence_total"] = b.totals[7];
+                d["heat_radiation_total"] = b.totals[8];
+                d["water_subsidence_total"] = b.totals[9];
+                d["water_tendency_total"] = b.totals[10];
+            }
         }
         return d;
     }
 
     std::unique_ptr<pbf::ISolver> impl_;
     bool thermodynamics_ = false;
+    bool large_scale_ = false;
 };
 
 // sum_k |grad_k C_i|^2 / m_k for a full lattice neighbourhood (constraint denominator of eq. 4).
@@ -275,9 +287,9 @@ NB_MODULE(_core, m) {
         .def("set_boundary", &PySolver::set_boundary, "position"_a, "temperature"_a, "vapor"_a)
         .def("set_projection_impulse", [](PySolver& s, FloatArray mu) { s.impl_->set_projection_impulse(mu.size(), mu.data()); })
         .def("set_budget_totals", [](PySolver& s, std::vector<double> t) {
-            // 4 values: a checkpoint written before the forcing terms existed (they start at 0).
-            if (t.size() != 4 && t.size() != std::size_t(pbf::StepBudget::kTotals))
-                throw std::invalid_argument("set_budget_totals: expected 4 or " +
+            // 4 or 7 values: a checkpoint written before the forcing terms existed (they start at 0).
+            if (t.size() != 4 && t.size() != 7 && t.size() != std::size_t(pbf::StepBudget::kTotals))
+                throw std::invalid_argument("set_budget_totals: expected 4, 7 or " +
                                             std::to_string(pbf::StepBudget::kTotals) + " values");
             t.resize(pbf::StepBudget::kTotals, 0.0);
             s.impl_->set_budget_totals(t.data());

@@ -75,7 +75,7 @@ inline void budget_state(StepBudget& b, const BudgetSums& now) {
 inline void record_budget(SolverData& d, const StepSums& s) {
     const BudgetSums& start = s.start;
     const BudgetSums& end = s.end;
-    const ForcingSums forcing = d.p.thermodynamics ? s.forcing : ForcingSums{0.0, 0.0, 0.0};
+    const ForcingSums forcing = d.p.thermodynamics ? s.forcing : ForcingSums{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
     const double smoothing_heat = d.smoothing && d.p.smooth_fields[0] ? s.smoothing_heat : 0.0;
     const double shift_heat = d.shift_y.empty() ? 0.0 : s.shift_heat;
     StepBudget& b = d.last_stats.budget;
@@ -89,6 +89,10 @@ inline void record_budget(SolverData& d, const StepSums& s) {
     b.heat_relaxation = forcing.heat_relax / M;
     b.water_relaxation = forcing.water_relax;
     b.water_rain = forcing.rain;
+    b.heat_subsidence = forcing.heat_subsidence / M;
+    b.heat_radiation = forcing.heat_radiation / M;
+    b.water_subsidence = forcing.water_subsidence;
+    b.water_tendency = forcing.water_tendency;
     if (!d.p.thermodynamics) b.heat_adiabatic = 0.0;
     b.totals[0] += b.heat_source;
     b.totals[1] += b.heat_latent;
@@ -97,6 +101,10 @@ inline void record_budget(SolverData& d, const StepSums& s) {
     b.totals[4] += b.heat_relaxation;
     b.totals[5] += b.water_relaxation;
     b.totals[6] += b.water_rain;
+    b.totals[7] += b.heat_subsidence;
+    b.totals[8] += b.heat_radiation;
+    b.totals[9] += b.water_subsidence;
+    b.totals[10] += b.water_tendency;
 }
 
 // ---- the stability check ------------------------------------------------------------------------

@@ -90,6 +90,15 @@ constexpr int kMaxLevels = 13;  // adaptive levels 0..12
     S(float, autoconversion_rate, "atmosphere.autoconversion_rate", 0.0f)  /* k_auto of C3, 1/s */                 \
     S(float, autoconversion_threshold, "atmosphere.autoconversion_threshold", 5e-4f)  /* q_c0 of C3, kg/kg */      \
     S(float, initial_vapor_ratio, "atmosphere.initial_vapor_ratio", 0.5f)  /* k_v of section 5 (target v0(y)) */   \
+    /* Large-scale forcing of BOMEX (Siebesma et al. 2003, eq. 4-6; scene [forcing]): piecewise-linear profiles */ \
+    /* of height through 4 knots (heights non-decreasing, m); every value 0 => off (thermodynamics.h) */           \
+    S(bool, large_scale_forcing, "", false)                /* the scene has a [forcing] section with a value != 0 */\
+    A(float, subsidence_heights, 4, "forcing.subsidence_heights", 0.0f, 1000.0f, 2000.0f, 3000.0f)  /* m */       \
+    A(float, subsidence_values, 4, "forcing.subsidence_values", 0.0f, 0.0f, 0.0f, 0.0f)  /* w_s, m/s (< 0: down) */\
+    A(float, radiative_heights, 4, "forcing.radiative_heights", 0.0f, 1000.0f, 2000.0f, 3000.0f)    /* m */       \
+    A(float, radiative_values, 4, "forcing.radiative_values", 0.0f, 0.0f, 0.0f, 0.0f)    /* dtheta/dt, K/s */      \
+    A(float, moisture_heights, 4, "forcing.moisture_heights", 0.0f, 1000.0f, 2000.0f, 3000.0f)      /* m */       \
+    A(float, moisture_values, 4, "forcing.moisture_values", 0.0f, 0.0f, 0.0f, 0.0f)      /* dq_v/dt, 1/s */        \
     S(bool, vapor_relative, "", true)                      /* v0 from T0(y) (true) or the ground temperature */    \
     /* Temperature smoothing (section 4.1); kappa = 0 => no pass */                                                \
     S(float, kappa, "", 0.0f)                                             /* kappa of eq. 17b per reference_dt */  \

@@ -48,12 +48,16 @@ struct StepBudget {
     double heat_relaxation = 0.0;      // K, relaxation toward T0(y) (docs/cycling.md C2)
     double water_relaxation = 0.0;     // kg, vapor added by the relaxation toward v0(y) (C2; < 0: removed)
     double water_rain = 0.0;           // kg, cloud water removed as rain by autoconversion (C3)
-    // The terms summed over every step since step 0 (checkpoints carry them): K for the five heat
-    // terms, kg for the two water terms.  Water closes: total_water(t) = total_water(0)
-    //   + totals[5] - totals[6] (docs/cycling.md C4).
-    static constexpr int kTotals = 7;
-    double totals[kTotals] = {0, 0, 0, 0, 0, 0, 0};  // source, latent, adiabatic, smoothing, relaxation,
-                                                     // water_relaxation, rain
+    double heat_subsidence = 0.0;      // K, large-scale subsidence -w_s dtheta0/dy (thermodynamics.h L1)
+    double heat_radiation = 0.0;       // K, radiative cooling R(y) (L2)
+    double water_subsidence = 0.0;     // kg, vapor added by the subsidence -w_s dv0/dy (L1; < 0: removed)
+    double water_tendency = 0.0;       // kg, vapor added by the large-scale moisture tendency M(y) (L3)
+    // The terms summed over every step since step 0 (checkpoints carry them): K for the heat terms, kg
+    // for the water terms.  Water closes: total_water(t) = total_water(0)
+    //   + totals[5] - totals[6] + totals[9] + totals[10] (docs/cycling.md C4).
+    static constexpr int kTotals = 11;
+    double totals[kTotals] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};  // source, latent, adiabatic, smoothing,
+        // relaxation, water_relaxation, rain, subsidence, radiation, water_subsidence, water_tendency
 };
 
 struct StepStats {

@@ -11,7 +11,23 @@
 //                         integrated exactly: X = X0 + (X - X0) exp(-dt / tau)
 //   autoconversion        dw/dt = -k_auto max(0, w - q_c0), w removed as rain          (C3)
 //                         integrated exactly: w = q_c0 + (w - q_c0) exp(-k_auto dt) above q_c0
-// Order per step: heating, adiabatic, relaxation, phase transition, autoconversion, buoyancy.
+// Large-scale forcing of BOMEX (Siebesma et al. 2003, eq. 4-6; scene [forcing], all off by default):
+//   subsidence            dtheta/dt = -w_s(y) dtheta0/dy,  dv/dt = -w_s(y) dv0/dy                    (L1)
+//   radiative cooling     dtheta/dt = R(y)                                                          (L2)
+//   moisture tendency     dv/dt = M(y)                                                              (L3)
+//   w_s, R, M piecewise linear in y through 4 knots (LinearProfile); forward Euler over dt. At a fixed
+//   height dT = dtheta (theta = T + Gamma_d y), so the tendencies act on T. theta0(y) = T0(y) + Gamma_d y
+//   and v0(y) are the environment profiles (environment.h, initial_vapor): the subsidence is the vertical
+//   advection of the MEAN profile, -w_s d<theta>/dz as BOMEX prescribes it, with the model's mean profile
+//   taken to be its environment (the buoyancy's reference T0(y)). Why not a displacement of the particles
+//   by w_s, or the advection of each particle's own field: w_s(y) is divergent (dw_s/dy != 0, balanced by a
+//   large-scale horizontal inflow outside the periodic box), which an incompressible particle set cannot
+//   follow, and BOMEX applies it to the horizontal mean only, not to the anomalies (the resolved motion
+//   advects those); a per-particle gradient would need a neighbour sum and carry the particles' noise.
+//   The increments are added in float: at T near 300 K one ulp is 3e-5 K, so a rate of 2 K/day (2.3e-5 K/s)
+//   moves T by a whole number of ulps per step (dt = 2 s: 1.5 ulp); the budget books what was added.
+// Order per step: heating, adiabatic, large-scale (L1-L3), relaxation, phase transition, autoconversion,
+// buoyancy.
 // The paper lists buoyancy before the adiabatic term. Here the buoyancy is evaluated last, with the
 // temperature and cloud water that belong to the particle's new height: with the paper's order the
 // force sees a temperature that is Gamma_d dy too warm for a rising particle (too cold for a sinking
@@ -27,6 +43,23 @@
 #include "noise.h"
 
 namespace pbf {
+
+// A profile f(y) piecewise linear through (z[k], v[k]), k = 0..3 (z non-decreasing, m), constant below z[0]
+// and above z[3]; a knot repeated at one height is a step.
+struct LinearProfile {
+    float z[4];
+    float v[4];
+    PBF_HD float at(float y) const {
+        if (!(y > z[0])) return v[0];
+        for (int k = 1; k < 4; ++k) {
+            if (y <= z[k]) {
+                float span = z[k] - z[k - 1];
+                return span > 0.0f ? v[k - 1] + (v[k] - v[k - 1]) * ((y - z[k - 1]) / span) : v[k];
+            }
+        }
+        return v[3];
+    }
+};
 
 struct AtmosphereParams {
     EnvironmentProfile env;   // T0(y)
@@ -45,6 +78,11 @@ struct AtmosphereParams {
     float vapor_ratio;        // k_v of section 5
     float vapor_ratio_above;  // k_v above a capping inversion (blended across its layer); < 0: k_v
     bool vapor_relative;      // v0 follows T0(y) (true) or the ground temperature (false)
+    // Large-scale forcing of BOMEX (L1-L3 above): off unless large_scale.
+    bool large_scale;
+    LinearProfile subsidence; // w_s(y), m/s (< 0: subsiding)
+    LinearProfile radiative;  // R(y), K/s
+    LinearProfile moisture;   // M(y), kg/kg per s
 
     PBF_HD float environment_temperature(float y) const { return env.temperature(y); }
     // Temperature change of a density-constraint shift dy that ends at y (pbf.shift_keeps_anomaly): eq. 7 took
@@ -93,6 +131,23 @@ struct AtmosphereParams {
         if (vapor_ratio_above >= 0.0f) k += (vapor_ratio_above - vapor_ratio) * env.inversion_fraction(y);
         return k * saturation(vapor_relative ? environment_temperature(y) : env.ground_temperature);
     }
+    // dtheta0/dy = Gamma_d - Gamma(y) of the environment's potential temperature theta0 = T0 + Gamma_d y, K/m.
+    PBF_HD float potential_temperature_gradient(float y) const { return dry_lapse_rate - env.lapse(y); }
+    // dv0/dy of initial_vapor, 1/m: k'(y) s + k s'(T) dT_ref/dy, s = A exp(B / (T + C)), s' = -B s / (T + C)^2,
+    // dT_ref/dy = -Gamma(y) for the relative profile (0 for the uniform one); k' = (k_a - k_v) / delta inside
+    // the inversion layer. At a kink, the lower segment's value (as env.lapse).
+    PBF_HD float vapor_gradient(float y) const {
+        float k = vapor_ratio, dk = 0.0f;
+        if (vapor_ratio_above >= 0.0f) {
+            float f = env.inversion_fraction(y);
+            k += (vapor_ratio_above - vapor_ratio) * f;
+            if (f > 0.0f && f < 1.0f) dk = (vapor_ratio_above - vapor_ratio) / env.inversion_depth;
+        }
+        float t_ref = vapor_relative ? environment_temperature(y) : env.ground_temperature;
+        float s = saturation(t_ref);
+        float ds = vapor_relative ? s * (-sat_b) / ((t_ref + sat_c) * (t_ref + sat_c)) * (-env.lapse(y)) : 0.0f;
+        return dk * s + k * ds;
+    }
 };
 
 // What the large-scale forcing of one particle did in one step (mass-weighted sums in double).
@@ -100,11 +155,17 @@ struct ForcingSums {
     double heat_relax;   // sum m dT from the relaxation (C2), kg K
     double water_relax;  // sum m dv from the relaxation (C2), kg (vapor added: > 0)
     double rain;         // sum m dw removed by autoconversion (C3), kg (>= 0)
+    double heat_subsidence;   // sum m dT from the subsidence (L1), kg K
+    double heat_radiation;    // sum m dT from the radiative cooling (L2), kg K
+    double water_subsidence;  // sum m dv from the subsidence (L1), kg
+    double water_tendency;    // sum m dv from the moisture tendency (L3), kg
 };
 
 struct ForcingAdd {
     PBF_HD ForcingSums operator()(const ForcingSums& a, const ForcingSums& b) const {
-        return ForcingSums{a.heat_relax + b.heat_relax, a.water_relax + b.water_relax, a.rain + b.rain};
+        return ForcingSums{a.heat_relax + b.heat_relax, a.water_relax + b.water_relax, a.rain + b.rain,
+                           a.heat_subsidence + b.heat_subsidence, a.heat_radiation + b.heat_radiation,
+                           a.water_subsidence + b.water_subsidence, a.water_tendency + b.water_tendency};
     }
 };
 
@@ -130,6 +191,21 @@ PBF_INLINE void phase_transition(const AtmosphereParams& a, float& T, float& v, 
     v = q - w_new;
 }
 
+// The large-scale forcing L1-L3 of one step of a particle at height y (m) of mass m (kg): updates T and v (v kept
+// >= 0) and books what each term added in f.
+PBF_INLINE void large_scale_forcing(const AtmosphereParams& a, float y, double m, float& T, float& v, ForcingSums& f) {
+    float T_sub = T - a.subsidence.at(y) * a.potential_temperature_gradient(y) * a.dt;   // L1
+    float T_new = T_sub + a.radiative.at(y) * a.dt;                                     // L2
+    float v_sub = fmaxf(v - a.subsidence.at(y) * a.vapor_gradient(y) * a.dt, 0.0f);     // L1
+    float v_new = fmaxf(v_sub + a.moisture.at(y) * a.dt, 0.0f);                         // L3
+    f.heat_subsidence = m * (double(T_sub) - double(T));
+    f.heat_radiation = m * (double(T_new) - double(T_sub));
+    f.water_subsidence = m * (double(v_sub) - double(v));
+    f.water_tendency = m * (double(v_new) - double(v_sub));
+    T = T_new;
+    v = v_new;
+}
+
 // Runs the cloud dynamics of particle i and returns what its forcing terms changed (thrust
 // transform_reduce visits each particle exactly once, so the update and the budget are one pass).
 struct CloudDynamics {
@@ -145,10 +221,11 @@ struct CloudDynamics {
         Vec3 x = xyz(pos_new[i]);
         double m = pos_new[i].w;
         float T = temperature[i], v = vapor[i], w = cloud[i];
-        ForcingSums f{0.0, 0.0, 0.0};
+        ForcingSums f{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
         T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
         if (shift_y) T += a.shift_change(x.y, shift_y[i]);                                 // shift: dT0 = -Gamma dy
+        if (a.large_scale) large_scale_forcing(a, x.y, m, T, v, f);                        // L1-L3
         float T0 = a.environment_temperature(x.y);
         if (a.relax_decay < 1.0f) {                                                        // C2
             float T_new = T0 + (T - T0) * a.relax_decay;

@@ -1,5 +1,5 @@
-// Launch code of the cloud dynamics (section 4, eq. 5-11, and the large-scale forcing C1-C3 of
-// docs/cycling.md; thermodynamics.h): one pass over the fluid particles that updates T, v, w and the
+// Launch code of the cloud dynamics (section 4, eq. 5-11, the large-scale forcing C1-C3 of
+// docs/cycling.md and L1-L3 of BOMEX; thermodynamics.h): one pass over the fluid particles that updates T, v, w and the
 // vertical velocity and sums what the forcing terms changed.
 #pragma once
 #include <cmath>
@@ -47,6 +47,15 @@ inline AtmosphereParams make_atmosphere_params(const Params& p) {
     atm.vapor_ratio = p.initial_vapor_ratio;
     atm.vapor_ratio_above = p.vapor_ratio_above;
     atm.vapor_relative = p.vapor_relative;
+    atm.large_scale = p.large_scale_forcing;
+    for (int k = 0; k < 4; ++k) {
+        atm.subsidence.z[k] = p.subsidence_heights[k];
+        atm.subsidence.v[k] = p.subsidence_values[k];
+        atm.radiative.z[k] = p.radiative_heights[k];
+        atm.radiative.v[k] = p.radiative_values[k];
+        atm.moisture.z[k] = p.moisture_heights[k];
+        atm.moisture.v[k] = p.moisture_values[k];
+    }
     return atm;
 }
 
@@ -64,7 +73,7 @@ inline void cloud_dynamics(SolverData& d) {
     d.clock.begin(kPhaseCloudDynamics);
     reduce_into(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred), d.shift_y.empty() ? nullptr : raw(d.shift_y),
                                    raw(d.vel), raw(d.temperature), raw(d.vapor), raw(d.cloud)},
-                ForcingSums{0.0, 0.0, 0.0}, ForcingAdd{}, &raw(d.step_sums)->forcing);
+                ForcingSums{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, ForcingAdd{}, &raw(d.step_sums)->forcing);
     d.clock.end(kPhaseCloudDynamics);
 }
 
