@@ -23,7 +23,14 @@ Discretisation (Miyazaki et al. 2002 / Dobashi et al. 2008 style):
   (C3).  The state carries the clock ``time`` (s) and the running budget sums
   ``rain_total``, ``water_relaxation_total`` (kg/kg m^3, like ``total_water``)
   and ``heat_relaxation_total`` (K m^3) as 0-d arrays, so water closes (C4):
-  total_water(t) = total_water(0) + water_relaxation_total - rain_total.
+  total_water(t) = total_water(0) + water_relaxation_total - rain_total;
+* large-scale forcing of BOMEX (Siebesma et al. 2003; scene [forcing]), as in the particle solver
+  (pbf_cuda/csrc/thermodynamics.h, L1-L3): subsidence of the environment profiles, theta' += -w_s(y)
+  dtheta0/dy dt and v += -w_s(y) dv0/dy dt, radiative cooling theta' += R(y) dt, moisture tendency
+  v += M(y) dt, each a per-level rate (make_aux) applied after the heating, booked in the running sums
+  ``heat_subsidence_total``, ``heat_radiation_total`` (K m^3), ``water_subsidence_total`` and
+  ``water_tendency_total`` (kg/kg m^3).  theta0(y) and v0(y) are the environment's (the grid's theta'
+  is measured from theta0, so the mean-profile tendency is a source of theta').
 
 Temperature: the grid advects theta' = T + Gamma_d y - theta0(y), the
 perturbation of the potential temperature theta = T + Gamma_d y from the
@@ -63,7 +70,8 @@ __all__ = ["Params", "params_from_scene", "initial_state", "make_aux", "advect",
 
 FIELD_KEYS = ("ux", "uy", "uz", "theta", "vapor", "cloud")
 # 0-d entries of the state: the clock and the forcing's running budget sums (docs/cycling.md C4)
-SCALAR_KEYS = ("time", "rain_total", "water_relaxation_total", "heat_relaxation_total")
+SCALAR_KEYS = ("time", "rain_total", "water_relaxation_total", "heat_relaxation_total",
+               "heat_subsidence_total", "heat_radiation_total", "water_subsidence_total", "water_tendency_total")
 STATE_KEYS = FIELD_KEYS + SCALAR_KEYS
 UP = 1  # y is up
 
@@ -100,6 +108,49 @@ def initial_vapor(p: Params, y):
     t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.environment.ground_temperature)
     k = vapor_ratio(p.environment, p.initial_vapor_ratio, p.vapor_ratio_above, y)
     return k * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+
+
+def linear_profile(heights, values, y):
+    """f(y) piecewise linear through (heights[k], values[k]), constant below the first knot and above the last
+    (host, float64; the particle solver's LinearProfile)."""
+    y = np.asarray(y, dtype=np.float64)
+    z = np.asarray(heights, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float64)
+    out = np.full_like(y, v[0])
+    for k in range(1, len(z)):
+        inside = (y > z[k - 1]) & (y <= z[k])
+        span = z[k] - z[k - 1]
+        seg = v[k - 1] + (v[k] - v[k - 1]) * (y - z[k - 1]) / span if span > 0.0 else np.full_like(y, v[k])
+        out = np.where(inside, seg, out)
+    return np.where(y > z[-1], v[-1], out)
+
+
+def vapor_gradient(p: Params, y):
+    """dv0/dy of initial_vapor (host, float64, 1/m): k'(y) s + k s'(T) dT_ref/dy (thermodynamics.h)."""
+    y = np.asarray(y, dtype=np.float64)
+    env = p.environment
+    relative = p.vapor_profile == "relative"
+    k = vapor_ratio(env, p.initial_vapor_ratio, p.vapor_ratio_above, y)
+    dk = np.zeros_like(y)
+    if p.vapor_ratio_above >= 0.0 and env.has_inversion:
+        f = np.asarray(env.inversion_fraction(y), dtype=np.float64)
+        dk = np.where((f > 0.0) & (f < 1.0), (p.vapor_ratio_above - p.initial_vapor_ratio) / env.inversion_depth, 0.0)
+    t_ref = environment_temperature(p, y) if relative else np.full_like(y, env.ground_temperature)
+    s = p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+    ds = s * (-p.saturation_b) / (t_ref + p.saturation_c) ** 2 * -np.asarray(env.lapse(y), float) if relative else 0.0 * y
+    return dk * s + k * ds
+
+
+def large_scale_rates(p: Params, y):
+    """The forcing L1-L3 per unit time at heights y (host, float64): (subsidence dtheta/dt K/s, radiative dtheta/dt
+    K/s, subsidence dv/dt 1/s, moisture dv/dt 1/s)."""
+    ws = linear_profile(p.subsidence_heights, p.subsidence_values, y)
+    return (-ws * stratification(p, y), linear_profile(p.radiative_heights, p.radiative_values, y),
+            -ws * vapor_gradient(p, y), linear_profile(p.moisture_heights, p.moisture_values, y))
+
+
+def large_scale_active(p: Params) -> bool:
+    return any(v != 0.0 for v in (*p.subsidence_values, *p.radiative_values, *p.moisture_values))
 
 
 def diurnal_factor(t, period):
@@ -155,6 +206,10 @@ def make_aux(p: Params, dtype):
     }
     if p.environment.has_inversion:   # Gamma_d - Gamma(y) per level (a linear profile: one number, in advect)
         aux["stable"] = jnp.asarray(stratification(p, yc).reshape(_bshape(UP, p.shape[UP])), dtype=dtype)
+    if large_scale_active(p):          # L1-L3 per level, times dt
+        for key, rate in zip(("ls_theta_sub", "ls_theta_rad", "ls_vapor_sub", "ls_vapor_tend"),
+                             large_scale_rates(p, yc)):
+            aux[key] = jnp.asarray((p.dt * rate).reshape(_bshape(UP, p.shape[UP])), dtype=dtype)
     return aux
 
 
@@ -336,7 +391,7 @@ def vorticity_force(vel, p: Params):
 
 
 def physics(state, aux, p: Params):
-    """Vorticity confinement, then cloud dynamics in the particle solver's order (eq. 5, 6, 7, 9-11)."""
+    """Vorticity confinement, then cloud dynamics in the particle solver's order (eq. 5, L1-L3, C2, 6, 7, 9-11)."""
     dt = p.dt
     per = p.periodic
     vel = [state["ux"], state["uy"], state["uz"]]
@@ -351,6 +406,17 @@ def physics(state, aux, p: Params):
     # times the time-of-day factor of eq. C1 at the step's mid-time
     if p.heating_rate > 0.0:
         theta = theta + (dt * diurnal_factor(clock + 0.5 * dt, p.diurnal_period)) * aux["heat"]
+    # L1-L3: large-scale subsidence, radiative cooling and moisture tendency (per-level rates times dt)
+    if "ls_theta_sub" in aux:
+        theta_sub = theta + aux["ls_theta_sub"]
+        theta_new = theta_sub + aux["ls_theta_rad"]
+        vapor_sub = jnp.maximum(vapor + aux["ls_vapor_sub"], 0.0)
+        vapor_new = jnp.maximum(vapor_sub + aux["ls_vapor_tend"], 0.0)
+        out["heat_subsidence_total"] = state["heat_subsidence_total"] + jnp.sum(theta_sub - theta) * vol
+        out["heat_radiation_total"] = state["heat_radiation_total"] + jnp.sum(theta_new - theta_sub) * vol
+        out["water_subsidence_total"] = state["water_subsidence_total"] + jnp.sum(vapor_sub - vapor) * vol
+        out["water_tendency_total"] = state["water_tendency_total"] + jnp.sum(vapor_new - vapor_sub) * vol
+        theta, vapor = theta_new, vapor_new
     # eq. C2: relaxation toward the initial profiles, exact over the step (theta' = T - T0(y) -> 0, v -> v0)
     if p.relaxation_time > 0.0:
         decay = math.exp(-dt / p.relaxation_time)

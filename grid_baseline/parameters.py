@@ -28,6 +28,9 @@ COPIED = {
                    "relaxation_time", "autoconversion_rate", "autoconversion_threshold"),
     "pbf": ("vorticity", "gravity"),
     "particles": ("rest_density",),   # a cell's mass is rest_density * cell volume (budgets)
+    # the BOMEX forcing (model.py, L1-L3); a scene without [forcing] takes the defaults (no forcing)
+    "forcing": ("subsidence_heights", "subsidence_values", "radiative_heights", "radiative_values",
+                "moisture_heights", "moisture_values"),
 }
 
 _ENVIRONMENT = "Params.environment: T0(y) (pbf_cuda/environment.py, EnvironmentProfile.of)"
@@ -113,6 +116,12 @@ _COPIED_FIELDS = [(section, name, _GRID_TYPES[_scene_field(section, name).type])
                   for section, names in COPIED.items() for name in names]
 
 
+def _section(scene, section):
+    """The scene's section, or the schema's defaults for an optional section the scene leaves out ([forcing])."""
+    values = getattr(scene, section)
+    return values if values is not None else SECTIONS[section]()
+
+
 def _steps(self) -> tuple:
     """Cell size per axis (m)."""
     return tuple(L / n for L, n in zip(self.size, self.shape))
@@ -141,7 +150,7 @@ Params.__module__ = __name__   # where pickle finds it (make_dataclass's module=
 
 def params_from_scene(scene, shape, cfl_target=0.8, max_substeps=16) -> Params:
     """The step's parameters for a cloud scene on a grid of `shape` cells (nx, ny, nz)."""
-    copied = {name: _grid_value(getattr(getattr(scene, section), name), kind)
+    copied = {name: _grid_value(getattr(_section(scene, section), name), kind)
               for section, name, kind in _COPIED_FIELDS}
     return Params(
         shape=tuple(int(n) for n in shape), size=tuple(float(s) for s in scene.domain.size),

@@ -494,6 +494,11 @@ def _diagnostics(state, aux, p):
         "rain_total": state["rain_total"],
         "water_relaxation_total": state["water_relaxation_total"],
         "heat_relaxation_total": state["heat_relaxation_total"],
+        # the BOMEX forcing's running sums (model.py, L1-L3): K m^3 and kg/kg m^3
+        "heat_subsidence_total": state["heat_subsidence_total"],
+        "heat_radiation_total": state["heat_radiation_total"],
+        "water_subsidence_total": state["water_subsidence_total"],
+        "water_tendency_total": state["water_tendency_total"],
         "max_cloud": jnp.max(w),
         "cloud_cells": jnp.sum(cloudy.astype(w.dtype)),
         "cloud_cover": jnp.mean(column_cloudy.astype(w.dtype)),

@@ -35,7 +35,7 @@ def test_params_hold_the_copied_fields_under_the_scene_names():
     for section, fields in COPIED.items():
         for name in fields:
             assert name in names
-            value = getattr(getattr(scene, section), name)
+            value = getattr(getattr(scene, section) or SECTIONS[section](), name)   # [forcing]: its defaults
             assert getattr(p, name) == (tuple(value) if isinstance(value, list) else value), name
     assert p.shape == SHAPE and p.size == tuple(scene.domain.size) and p.dt == scene.time.dt
     assert p.periodic == tuple(b == "periodic" for b in scene.domain.boundary)
