@@ -37,6 +37,10 @@ VERDICTS = {
               "Only GPU-scale rows are comparable with the paper; smaller scales time scaled-down scenes.",
     "scaling": "Milliseconds per step against particle count (and grid cells): how the step grows with size. "
                "Linear growth means the neighbour search and solve stay O(N).",
+    "convergence": "Both solvers at several resolutions and seeds: each statistic's order of convergence p of "
+                   "S_inf + C h^p with a 90% interval (bootstrap over seeds), or the reason none is determined "
+                   "(a flat or non-monotone series, too few resolutions). An order with a narrow interval says the "
+                   "statistic converges at that rate; S_inf is the extrapolated value the two solvers should share.",
     "compare": "Particles (non-adaptive, adaptive) against the grid baseline over noise seeds: cloud base, top, "
                "cover and liquid water path with 95% confidence intervals and Welch tests. Agreement within the "
                "intervals means both solvers produce the same clouds; a significant difference names the metric.",
