@@ -225,3 +225,18 @@ def test_vapor_gradient_is_the_derivative_of_v0():
     fd = (model.initial_vapor(p, y + h) - model.initial_vapor(p, y - h)) / (2 * h)
     assert np.allclose(model.vapor_gradient(p, y), fd, rtol=1e-5)
     assert model.vapor_gradient(p, np.array([1700.0]))[0] < 10 * model.vapor_gradient(p, np.array([800.0]))[0]
+
+
+def test_checkpoint_carries_the_forcing_totals(tmp_path):
+    scene = box_at_rest(**{"forcing.subsidence_values": [-0.01, -0.01, 0.0, 0.0],
+                           "forcing.radiative_values": [-1e-4, 0.0, 0.0, 0.0],
+                           "forcing.moisture_values": [-1e-8, 0.0, 0.0, 0.0]})
+    sim = Simulation(scene, backend="cpu", seed=0)
+    sim.step(3)
+    path = sim.save(tmp_path / "ck.npz")
+    sim.step(3)
+    restored = Simulation.load(path, backend="cpu")
+    restored.step(3)
+    a, b = sim.stats(), restored.stats()
+    for key in ("heat_subsidence_total", "heat_radiation_total", "water_subsidence_total", "water_tendency_total"):
+        assert a[key] != 0.0 and a[key] == b[key], key
