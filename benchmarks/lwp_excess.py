@@ -6,8 +6,8 @@ baseline on the same scene, each seed's cover, mean LWP, cloud base and top ever
 deposits and measures them (cloudpbf.statistics). The excess at paper scale is docs/validation.md's
 "Particles against the grid"; this box reproduces it on a CPU.
 
-Usage: python benchmarks/lwp_excess.py [--variants grid,default,scorr_half,scorr0] [--seeds 0,1]
-                                       [--duration 1000] [--out FILE.csv]
+Usage: python benchmarks/lwp_excess.py [--variants grid,default,scorr_half,scorr0,mix_all] [--seeds 0,1]
+                                       [--duration 1000] [--paper-scale] [--backend cpu|cuda] [--out FILE.csv]
 """
 from __future__ import annotations
 
@@ -30,16 +30,17 @@ SAMPLE_S = 100.0
 KEYS = ("cloud_cover", "lwp_mean", "cloud_base", "cloud_top")
 
 
-def run(variant: str, seed: int, duration: float) -> list[dict]:
-    """Rows every SAMPLE_S of one run: the grid baseline for 'grid', else the particles with the overrides."""
-    scene = load_scene("growing", **BOX, **VARIANTS[variant])
+def run(variant: str, seed: int, duration: float, paper_scale: bool = False, backend: str = "cpu") -> list[dict]:
+    """Rows every SAMPLE_S of one run: the grid baseline for 'grid', else the particles with the overrides;
+    in the CPU column (BOX) or, with paper_scale, in the scene's own domain at its own spacing."""
+    scene = load_scene("growing", **({} if paper_scale else BOX), **VARIANTS[variant])
     steps = int(round(SAMPLE_S / scene.time.dt))
     started, rows = time.perf_counter(), []
     if variant == "grid":
         from grid_baseline import GridSimulation  # grid extra (jax-cfd)
         sim = GridSimulation(scene, seed=seed)
     else:
-        sim = Simulation(scene, backend="cpu", seed=seed)
+        sim = Simulation(scene, backend=backend, seed=seed)
     for k in range(int(round(duration / SAMPLE_S))):
         sim.step(steps)
         if variant == "grid":
@@ -55,12 +56,22 @@ def run(variant: str, seed: int, duration: float) -> list[dict]:
     return rows
 
 
+def labelled(rows: list[dict], args) -> pd.DataFrame:
+    """The rows with their device, commit and scale."""
+    frame = pd.DataFrame(rows)
+    frame["device"], frame["commit"] = device_description(args.backend), commit()
+    frame["scale"] = "paper" if args.paper_scale else "column"
+    return frame
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", default="grid,default,scorr_half,scorr0", help=f"of {', '.join(VARIANTS)}")
     parser.add_argument("--seeds", default="0,1", help="noise seeds, comma-separated")
     parser.add_argument("--duration", type=float, default=1000.0, help="simulated time of each run, s")
     parser.add_argument("--out", default=None, help="CSV of every sample")
+    parser.add_argument("--paper-scale", action="store_true", help="the scene's own 3.2 km domain and spacing")
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"))
     args = parser.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
@@ -69,10 +80,11 @@ def main(argv=None) -> int:
     rows = []
     for variant in variants:
         for seed in (int(s) for s in args.seeds.split(",")):
-            rows += run(variant, seed, args.duration)
+            rows += run(variant, seed, args.duration, args.paper_scale, args.backend)
             print(f"{variant} seed {seed}: LWP {rows[-1]['lwp_mean']:.3f} kg/m^2 at {args.duration:g} s", flush=True)
-    frame = pd.DataFrame(rows)
-    frame["device"], frame["commit"] = device_description("cpu"), commit()
+            if args.out:                 # after every run: a run cut by a time limit keeps the rows before it
+                save_frame(labelled(rows, args), args.out)
+    frame = labelled(rows, args)
     late = frame[frame["time_s"] >= args.duration / 2]
     print(late.groupby("variant")[list(KEYS)].mean().to_string())
     if args.out:
