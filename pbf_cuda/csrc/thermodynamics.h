@@ -24,8 +24,10 @@
 //   large-scale horizontal inflow outside the periodic box), which an incompressible particle set cannot
 //   follow, and BOMEX applies it to the horizontal mean only, not to the anomalies (the resolved motion
 //   advects those); a per-particle gradient would need a neighbour sum and carry the particles' noise.
-//   The increments are added in float: at T near 300 K one ulp is 3e-5 K, so a rate of 2 K/day (2.3e-5 K/s)
-//   moves T by a whole number of ulps per step (dt = 2 s: 1.5 ulp); the budget books what was added.
+//   The increments are a few ulps of T (at 300 K one ulp is 3e-5 K; 2 K/day at dt = 2 s is 1.5 ulp), so
+//   round-to-nearest would bias them (1.5 ulp always becomes 2: +32%); they are added with stochastic
+//   rounding instead (dithered_add: to a neighbouring multiple of the ulp, up or down with the probabilities
+//   that make the mean exact, from a hash of the particle's id and the step). The budget books what was added.
 // Order per step: heating, adiabatic, large-scale (L1-L3), relaxation, phase transition, autoconversion,
 // buoyancy.
 // The paper lists buoyancy before the adiabatic term. Here the buoyancy is evaluated last, with the
@@ -191,13 +193,25 @@ PBF_INLINE void phase_transition(const AtmosphereParams& a, float& T, float& v, 
     v = q - w_new;
 }
 
+// x + dx rounded to a multiple of x's float spacing (its ulp), down or up at random so that the mean is x + dx:
+// with u uniform in [0, 1), x + ulp floor(dx / ulp + u). Exact arithmetic while x stays in its binade.
+PBF_INLINE float dithered_add(float x, float dx, float u) {
+    int e;
+    frexpf(x, &e);                        // x = m 2^e, 0.5 <= |m| < 1: ulp = 2^(e - 24)
+    float ulp = ldexpf(1.0f, e - 24);
+    return x + ulp * floorf(dx / ulp + u);
+}
+
 // The large-scale forcing L1-L3 of one step of a particle at height y (m) of mass m (kg): updates T and v (v kept
-// >= 0) and books what each term added in f.
-PBF_INLINE void large_scale_forcing(const AtmosphereParams& a, float y, double m, float& T, float& v, ForcingSums& f) {
-    float T_sub = T - a.subsidence.at(y) * a.potential_temperature_gradient(y) * a.dt;   // L1
-    float T_new = T_sub + a.radiative.at(y) * a.dt;                                     // L2
-    float v_sub = fmaxf(v - a.subsidence.at(y) * a.vapor_gradient(y) * a.dt, 0.0f);     // L1
-    float v_new = fmaxf(v_sub + a.moisture.at(y) * a.dt, 0.0f);                         // L3
+// >= 0) and books what each term added in f. seed: a hash of the particle's id and the step (the dither).
+PBF_INLINE void large_scale_forcing(const AtmosphereParams& a, float y, double m, uint32_t seed, float& T, float& v,
+                                    ForcingSums& f) {
+    float T_sub = dithered_add(T, -a.subsidence.at(y) * a.potential_temperature_gradient(y) * a.dt,
+                               hash_unit(seed));                                                        // L1
+    float T_new = dithered_add(T_sub, a.radiative.at(y) * a.dt, hash_unit(seed + 0x9E3779B9u));         // L2
+    float v_sub = fmaxf(dithered_add(v, -a.subsidence.at(y) * a.vapor_gradient(y) * a.dt,
+                                     hash_unit(seed + 0x3C6EF372u)), 0.0f);                             // L1
+    float v_new = fmaxf(dithered_add(v_sub, a.moisture.at(y) * a.dt, hash_unit(seed + 0xDAA66D2Bu)), 0.0f);  // L3
     f.heat_subsidence = m * (double(T_sub) - double(T));
     f.heat_radiation = m * (double(T_new) - double(T_sub));
     f.water_subsidence = m * (double(v_sub) - double(v));
@@ -217,6 +231,8 @@ struct CloudDynamics {
     float* temperature;
     float* vapor;
     float* cloud;
+    const uint32_t* id;      // particle ids and the step: the large-scale forcing's dither (large_scale_forcing)
+    uint32_t step;
     PBF_HD ForcingSums operator()(uint32_t i) const {
         Vec3 x = xyz(pos_new[i]);
         double m = pos_new[i].w;
@@ -225,7 +241,7 @@ struct CloudDynamics {
         T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
         if (shift_y) T += a.shift_change(x.y, shift_y[i]);                                 // shift: dT0 = -Gamma dy
-        if (a.large_scale) large_scale_forcing(a, x.y, m, T, v, f);                        // L1-L3
+        if (a.large_scale) large_scale_forcing(a, x.y, m, hash_u32(id[i] ^ hash_u32(step)), T, v, f);  // L1-L3
         float T0 = a.environment_temperature(x.y);
         if (a.relax_decay < 1.0f) {                                                        // C2
             float T_new = T0 + (T - T0) * a.relax_decay;
