@@ -20,7 +20,7 @@ import pandas as pd
 from cloudpbf.environment import commit, device_description
 from cloudpbf.store.files import save_frame
 from cloudpbf.statistics import particle_diagnostics
-from cloudpbf.studies.adaptive_pareto.analysis import _relative_l2
+from cloudpbf.statistics import relative_l2
 from cloudpbf.studies.adaptive_pareto.design import SERIES
 from pbf_cuda import InstabilityError, Simulation, load_scene
 
@@ -91,8 +91,8 @@ def main(argv=None) -> int:
                 mean = {k: np.mean([s[k][:n] for s in per_seed], axis=0) for k in per_seed[0]}
                 means[(mode, dt)] = mean
                 reference = reference if reference is not None else mean
-                errs = [_relative_l2(np.interp(reference["time"], mean["time"], mean[k]), reference[k])
-                        for k, _ in SERIES_USED]
+                errs = [relative_l2(np.interp(reference["time"], mean["time"], mean[k]), reference[k],
+                                    skip_nonfinite=True) for k, _ in SERIES_USED]
                 row.update({"wall_s_per_simulated_s": float(np.median(walls)),
                             "cover_end": float(mean["cover"][-1]), "lwp_end": float(mean["lwp"][-1])})
                 row.update({f"e_{k}": e for (k, _), e in zip(SERIES_USED, errs)})

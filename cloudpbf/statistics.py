@@ -81,6 +81,20 @@ CLOUD_MEANS = (("cloud_base", "cloud_base"), ("cloud_top", "cloud_top"), ("cover
 fraction; mean LWP in kg/m^2): particles_vs_grid.csv's metrics, the sweep's <name>_mean columns."""
 
 
+def relative_l2(values, reference, *, skip_nonfinite: bool = False) -> float:
+    """||values - reference||_2 / ||reference||_2 of two equally long samples (series, profiles); NaN where the
+    reference's norm is 0. skip_nonfinite: compare only the samples finite in both (series with gaps); else a
+    non-finite sample in either makes the result NaN."""
+    values, reference = np.asarray(values, dtype=float), np.asarray(reference, dtype=float)
+    ok = np.isfinite(values) & np.isfinite(reference)
+    if not skip_nonfinite and not ok.all():
+        return math.nan
+    norm = float(np.linalg.norm(reference[ok]))
+    if not ok.any() or norm == 0.0:
+        return math.nan
+    return float(np.linalg.norm(values[ok] - reference[ok])) / norm
+
+
 def cloudy_period_means(stats: pd.DataFrame) -> dict:
     """{<name>_mean: ...} of CLOUD_MEANS: time means of a run's diagnostics rows over its cloudy period (cover
     above CLOUDY_COVER); NaN without any cloudy row or without the column."""

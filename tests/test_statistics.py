@@ -356,3 +356,25 @@ def test_heated_mass_fraction_of_a_lattice_at_rest_is_one(spacing, depth):
     lifted = dict(state, position=state["position"] + np.array([0.0, 0.5 * dy, 0.0], dtype=np.float32))
     assert st.heated_mass_fraction(lifted, scene) == pytest.approx(full * max(0.0, 1.0 - 0.5 * dy / depth), rel=1e-5,
                                                                    abs=1e-7)
+
+
+# ---- relative L2 error (the error of the sweep, adaptive and time-to-solution studies) ----------------------
+
+from hypothesis import given, settings, strategies as hst  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=hst.integers(2, 50), scale=hst.floats(1e-3, 1e3), eps=hst.floats(-0.5, 0.5), seed=hst.integers(0, 2**31))
+def test_relative_l2_is_the_relative_size_of_a_perturbation(n, scale, eps, seed):
+    reference = scale * (1.0 + np.random.default_rng(seed).random(n))
+    assert st.relative_l2(reference, reference) == 0.0
+    assert st.relative_l2(reference * (1.0 + eps), reference) == pytest.approx(abs(eps), rel=1e-9, abs=1e-12)
+    assert st.relative_l2(reference * 7.0, reference * 7.0 * (1.0 + eps)) >= 0.0       # never negative
+
+
+def test_relative_l2_nonfinite_samples_propagate_or_are_skipped():
+    ref, val = np.array([1.0, 2.0, np.nan]), np.array([1.0, 2.0 * 1.1, 5.0])
+    assert math.isnan(st.relative_l2(val, ref))                                   # one gap: no error
+    assert st.relative_l2(val, ref, skip_nonfinite=True) == pytest.approx(0.2 / math.sqrt(5.0))
+    assert math.isnan(st.relative_l2([1.0, 2.0], [0.0, 0.0]))                      # no scale to be relative to
+    assert math.isnan(st.relative_l2([np.nan], [np.nan], skip_nonfinite=True))

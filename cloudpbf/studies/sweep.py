@@ -42,7 +42,7 @@ from cloudpbf.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutO
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
 from cloudpbf.pareto import pareto_mask
 from cloudpbf.report.inference import describes_no_difference, ratio_ci
-from cloudpbf.statistics import cloudy_period_means
+from cloudpbf.statistics import cloudy_period_means, relative_l2
 from cloudpbf.studies.context import StudyContext
 from cloudpbf.studies.plans import SWEEP_SCENE as SCENE, sweep_plan  # noqa: F401
 from cloudpbf.studies.registry import ReportSection, Study, register
@@ -54,10 +54,8 @@ SMOKE_BOX_SCENE = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "tim
 
 # ---- error metrics ---------------------------------------------------------------------------------
 def _relative_l2(values: np.ndarray, reference: np.ndarray) -> float:
-    norm = float(np.linalg.norm(reference))
-    if norm == 0.0 or not np.all(np.isfinite(values)) or not np.all(np.isfinite(reference)):
-        return math.nan
-    return float(np.linalg.norm(values - reference)) / norm
+    """The relative L2 error, NaN where either sample is not finite (statistics.relative_l2)."""
+    return relative_l2(values, reference)
 
 
 def cloud_signature(result: runs.RunResult) -> dict | None:

@@ -13,16 +13,13 @@ import pandas as pd
 
 from cloudpbf import runs
 from cloudpbf.pareto import pareto_front
+from cloudpbf.statistics import relative_l2
 from cloudpbf.studies.adaptive_pareto.design import (BOOTSTRAP_REPLICATES, DEFAULT_MAX_LEVEL, GOAL_SPEEDUP,
                                                   MIN_STABLE_SEEDS, SCENES, SERIES, Config)
 
 def _relative_l2(values, reference) -> float:
-    values, reference = np.asarray(values, float), np.asarray(reference, float)
-    ok = np.isfinite(values) & np.isfinite(reference)
-    norm = float(np.linalg.norm(reference[ok]))
-    if not ok.any() or norm == 0.0:
-        return math.nan
-    return float(np.linalg.norm(values[ok] - reference[ok])) / norm
+    """The relative L2 error over the samples finite in both (statistics.relative_l2)."""
+    return relative_l2(values, reference, skip_nonfinite=True)
 
 
 def signature(result: runs.RunResult) -> dict | None:
