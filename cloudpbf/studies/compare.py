@@ -36,7 +36,7 @@ from cloudpbf.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutO
 from cloudpbf.statistics import CLOUD_MEANS, CLOUDY_COVER, DIAGNOSTIC_COLUMNS, PROFILE_COLUMNS, onset_time
 from cloudpbf.studies.context import StudyContext
 from cloudpbf.studies.plans import (ANIMATION_FRAMES, MIN_SEEDS, SOLVER_OF_MODE, compare_specs,  # noqa: F401
-                                  scene_pair)
+                                  scene_pair, SMOKE_CLOUD_BOX)
 from cloudpbf.studies.registry import ReportSection, Study, register
 from pbf_cuda.scene import Scene
 
@@ -50,8 +50,7 @@ SOLVER_COLUMNS = ("n_particles", "level_0", "level_1", "level_2", "level_3", "de
                   "divergence_rel", *BUDGET_COLUMNS)
 
 
-SMOKE_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "particles.spacing": 100.0, "time.dt": 4.0,
-             "time.steps": 120, "time.snapshot_every": 20}
+SMOKE_BOX = {**SMOKE_CLOUD_BOX, "particles.spacing": 100.0}
 """The smoke scale's compare box (both modes, level-0 spacing 100 m for the adaptive twin too): the cloud
 scene's physics in a 1.2 x 1.6 x 1.2 km box of 2,304 particles, 480 s at dt = 4 s (at 8 s the adaptive
 run's refined particles hold a 64% density error, at 4 s about 1%).  Scaled to 3,000

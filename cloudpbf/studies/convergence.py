@@ -31,16 +31,13 @@ from cloudpbf.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutO
                                  study_context)
 from cloudpbf.statistics import CLOUD_MEANS, cloudy_period_means, grid_for_scene
 from cloudpbf.studies.context import StudyContext
+from cloudpbf.studies.plans import SMOKE_CLOUD_BOX
 from cloudpbf.studies.registry import Study, register
 from pbf_cuda.scene import load_scene
 
 MEANS = tuple(f"{name}_mean" for name, _ in CLOUD_MEANS)
 COLUMNS = ("solver", "resolution_m", "seed", "stable", *MEANS, "parameter", "method", "cells", "particles", "device",
            "commit")
-
-SMOKE_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
-             "time.snapshot_every": 20}
-"""The smoke scale's box (the compare and sweep studies' small box that forms clouds within 480 s)."""
 
 
 def convergence_plan(ctx: StudyContext, scene_name: str = "growing", resolutions=None,
@@ -136,5 +133,5 @@ register(Study("convergence", order=35, sections=("compare",), outputs=("converg
                                                   "gpu": (68.0, 54.0, 43.0, 34.0, 27.0)},
                       "convergence_seeds": {"smoke": 3, "cpu": 3, "gpu": 3},
                       # the smoke scale's small box (None: the scene's own domain and steps)
-                      "convergence_box": {"smoke": SMOKE_BOX, "cpu": None, "gpu": None}},
+                      "convergence_box": {"smoke": SMOKE_CLOUD_BOX, "cpu": None, "gpu": None}},
                command=convergence_command))

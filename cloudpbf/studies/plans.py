@@ -16,6 +16,10 @@ SOLVER_OF_MODE = {"non-adaptive": "particles", "adaptive": "particles", "grid": 
 MIN_SEEDS = 5
 """The fewest seeds compare runs (its tests between modes need them)."""
 SWEEP_SCENE = "growing"
+SMOKE_CLOUD_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
+                   "time.snapshot_every": 20}
+"""The smoke scale's cloud box of compare, sweep and convergence (each adds its spacings): the cloud scene's physics
+in a 1.2 x 1.6 x 1.2 km box that forms clouds within 480 s at dt = 4 s (docs/harness.md "Scales")."""
 
 
 # ---- compare -------------------------------------------------------------------------------------------

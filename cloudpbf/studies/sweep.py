@@ -44,12 +44,9 @@ from cloudpbf.pareto import pareto_mask
 from cloudpbf.report.inference import describes_no_difference, ratio_ci
 from cloudpbf.statistics import cloudy_period_means, relative_l2
 from cloudpbf.studies.context import StudyContext
-from cloudpbf.studies.plans import SWEEP_SCENE as SCENE, sweep_plan  # noqa: F401
+from cloudpbf.studies.plans import SMOKE_CLOUD_BOX, SWEEP_SCENE as SCENE, sweep_plan  # noqa: F401
 from cloudpbf.studies.registry import ReportSection, Study, register
 
-SMOKE_BOX_SCENE = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "time.steps": 120,
-                   "time.snapshot_every": 20}
-"""The smoke sweep's box (cloudpbf.studies.compare.SMOKE_BOX without its spacing)."""
 
 
 # ---- error metrics ---------------------------------------------------------------------------------
@@ -316,6 +313,6 @@ register(Study("sweep", order=40, run=lambda ctx, scene: run_sweep(ctx, scene), 
                                                   "gpu": (0.1, 0.2, 0.5, 1.0)},
                        "sweep_grid_cells": {"smoke": (8, 12, 16), "cpu": (16, 24, 32, 48), "gpu": (32, 48, 64, 96)},
                        # smoke: the compare study's small box (clouds form there), spacings in m instead of counts
-                       "sweep_box": {"smoke": {**SMOKE_BOX_SCENE, "spacings": (110.0, 100.0, 90.0)},
+                       "sweep_box": {"smoke": {**SMOKE_CLOUD_BOX, "spacings": (110.0, 100.0, 90.0)},
                                      "cpu": None, "gpu": None}},
                 command=sweep_command))
