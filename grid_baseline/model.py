@@ -102,12 +102,18 @@ def saturation(p: Params, T):
     return p.saturation_a * jnp.exp(p.saturation_b / (T + p.saturation_c))
 
 
+def _vapor_reference(p: Params, y):
+    """(T_ref, s(T_ref)) of v0 at heights y (host, float64): the temperature of its saturation, T0(y) ('relative')
+    or the ground's, K, and the saturation ratio there."""
+    t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.environment.ground_temperature)
+    return t_ref, p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+
+
 def initial_vapor(p: Params, y):
     """v0(y) of section 5 (host, float64): k_v times saturation at T0(y) ('relative') or at the ground."""
     y = np.asarray(y, dtype=np.float64)
-    t_ref = environment_temperature(p, y) if p.vapor_profile == "relative" else np.full_like(y, p.environment.ground_temperature)
     k = vapor_ratio(p.environment, p.initial_vapor_ratio, p.vapor_ratio_above, y)
-    return k * p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
+    return k * _vapor_reference(p, y)[1]
 
 
 def linear_profile(heights, values, y):
@@ -135,9 +141,8 @@ def vapor_gradient(p: Params, y):
     if p.vapor_ratio_above >= 0.0 and env.has_inversion:
         f = np.asarray(env.inversion_fraction(y), dtype=np.float64)
         dk = np.where((f > 0.0) & (f < 1.0), (p.vapor_ratio_above - p.initial_vapor_ratio) / env.inversion_depth, 0.0)
-    t_ref = environment_temperature(p, y) if relative else np.full_like(y, env.ground_temperature)
-    s = p.saturation_a * np.exp(p.saturation_b / (t_ref + p.saturation_c))
-    ds = s * (-p.saturation_b) / (t_ref + p.saturation_c) ** 2 * -np.asarray(env.lapse(y), float) if relative else 0.0 * y
+    t_ref, s = _vapor_reference(p, y)
+    ds = s * (-p.saturation_b) / (t_ref + p.saturation_c) ** 2 * -np.asarray(env.lapse(y), float) if relative else np.zeros_like(y)
     return dk * s + k * ds
 
 

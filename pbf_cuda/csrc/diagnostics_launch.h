@@ -75,7 +75,7 @@ inline void budget_state(StepBudget& b, const BudgetSums& now) {
 inline void record_budget(SolverData& d, const StepSums& s) {
     const BudgetSums& start = s.start;
     const BudgetSums& end = s.end;
-    const ForcingSums forcing = d.p.thermodynamics ? s.forcing : ForcingSums{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+    const ForcingSums forcing = d.p.thermodynamics ? s.forcing : ForcingSums{};
     const double smoothing_heat = d.smoothing && d.p.smooth_fields[0] ? s.smoothing_heat : 0.0;
     const double shift_heat = d.shift_y.empty() ? 0.0 : s.shift_heat;
     StepBudget& b = d.last_stats.budget;

@@ -128,10 +128,16 @@ struct AtmosphereParams {
         return buoyancy * (T - T0) / T0 - cloud_gravity * w;
     }
     // Initial (and relaxation target) vapor v0(y), kg/kg (section 5).
-    PBF_HD float initial_vapor(float y) const {
+    PBF_HD float initial_vapor(float y) const { return vapor_ratio_at(y) * saturation(vapor_reference_temperature(y)); }
+    // k_v at height y: k_v, blended across a capping inversion's layer to the ratio above it.
+    PBF_HD float vapor_ratio_at(float y) const {
         float k = vapor_ratio;
         if (vapor_ratio_above >= 0.0f) k += (vapor_ratio_above - vapor_ratio) * env.inversion_fraction(y);
-        return k * saturation(vapor_relative ? environment_temperature(y) : env.ground_temperature);
+        return k;
+    }
+    // The temperature of v0's saturation: T0(y) for the relative profile, the ground's for the uniform one, K.
+    PBF_HD float vapor_reference_temperature(float y) const {
+        return vapor_relative ? environment_temperature(y) : env.ground_temperature;
     }
     // dtheta0/dy = Gamma_d - Gamma(y) of the environment's potential temperature theta0 = T0 + Gamma_d y, K/m.
     PBF_HD float potential_temperature_gradient(float y) const { return dry_lapse_rate - env.lapse(y); }
@@ -139,16 +145,15 @@ struct AtmosphereParams {
     // dT_ref/dy = -Gamma(y) for the relative profile (0 for the uniform one); k' = (k_a - k_v) / delta inside
     // the inversion layer. At a kink, the lower segment's value (as env.lapse).
     PBF_HD float vapor_gradient(float y) const {
-        float k = vapor_ratio, dk = 0.0f;
+        float dk = 0.0f;
         if (vapor_ratio_above >= 0.0f) {
             float f = env.inversion_fraction(y);
-            k += (vapor_ratio_above - vapor_ratio) * f;
             if (f > 0.0f && f < 1.0f) dk = (vapor_ratio_above - vapor_ratio) / env.inversion_depth;
         }
-        float t_ref = vapor_relative ? environment_temperature(y) : env.ground_temperature;
+        float t_ref = vapor_reference_temperature(y);
         float s = saturation(t_ref);
         float ds = vapor_relative ? s * (-sat_b) / ((t_ref + sat_c) * (t_ref + sat_c)) * (-env.lapse(y)) : 0.0f;
-        return dk * s + k * ds;
+        return dk * s + vapor_ratio_at(y) * ds;
     }
 };
 
@@ -237,7 +242,7 @@ struct CloudDynamics {
         Vec3 x = xyz(pos_new[i]);
         double m = pos_new[i].w;
         float T = temperature[i], v = vapor[i], w = cloud[i];
-        ForcingSums f{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        ForcingSums f{};
         T += a.heating(x, pos_new[i].w);                                                    // eq. 5, C1
         T -= a.dry_lapse_rate * (x.y - pos_old[i].y);                                      // eq. 7
         if (shift_y) T += a.shift_change(x.y, shift_y[i]);                                 // shift: dT0 = -Gamma dy

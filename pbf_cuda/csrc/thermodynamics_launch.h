@@ -74,7 +74,7 @@ inline void cloud_dynamics(SolverData& d) {
     reduce_into(d.n, CloudDynamics{d.atm, raw(d.pos), raw(d.pred), d.shift_y.empty() ? nullptr : raw(d.shift_y),
                                    raw(d.vel), raw(d.temperature), raw(d.vapor), raw(d.cloud), raw(d.id),
                                    uint32_t(d.step)},
-                ForcingSums{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, ForcingAdd{}, &raw(d.step_sums)->forcing);
+                ForcingSums{}, ForcingAdd{}, &raw(d.step_sums)->forcing);
     d.clock.end(kPhaseCloudDynamics);
 }
 
