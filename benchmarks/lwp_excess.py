@@ -7,7 +7,7 @@ deposits and measures them (cloudpbf.statistics). The excess at paper scale is d
 "Particles against the grid"; this box reproduces it on a CPU.
 
 Usage: python benchmarks/lwp_excess.py [--variants grid,default,scorr_half,scorr0,mix_all,mix_all_k2] [--seeds 0,1]
-                                       [--duration 1000] [--paper-scale] [--spacing M] [--backend cpu|cuda]
+                                       [--duration 1000] [--paper-scale] [--scene NAME] [--spacing M] [--backend cpu|cuda]
                                        [--out FILE.csv]
 """
 from __future__ import annotations
@@ -33,14 +33,14 @@ KEYS = ("cloud_cover", "lwp_mean", "cloud_base", "cloud_top")
 
 
 def run(variant: str, seed: int, duration: float, paper_scale: bool = False, backend: str = "cpu",
-        spacing: float | None = None) -> list[dict]:
+        spacing: float | None = None, scene_name: str = "growing") -> list[dict]:
     """Rows every SAMPLE_S of one run: the grid baseline for 'grid', else the particles with the overrides;
     in the CPU column (BOX) or, with paper_scale, in the scene's own domain at its own spacing (or `spacing`, m:
     particle spacing and grid cell alike)."""
     size = {} if paper_scale else BOX
     if spacing:
         size = {**size, "particles.spacing": float(spacing)}
-    scene = load_scene("growing", **size, **VARIANTS[variant])
+    scene = load_scene(scene_name, **size, **VARIANTS[variant])
     steps = int(round(SAMPLE_S / scene.time.dt))
     started, rows = time.perf_counter(), []
     if variant == "grid":
@@ -56,7 +56,7 @@ def run(variant: str, seed: int, duration: float, paper_scale: bool = False, bac
             d = grid_diagnostics(fields, scene)
         else:
             d = particle_diagnostics(sim.state(), scene)
-        rows.append({"variant": variant, "seed": seed, "time_s": (k + 1) * SAMPLE_S, "spacing_m": scene.particles.spacing,
+        rows.append({"scene": scene_name, "variant": variant, "seed": seed, "time_s": (k + 1) * SAMPLE_S, "spacing_m": scene.particles.spacing,
                      **{key: d.get(key) for key in KEYS}})
     wall = time.perf_counter() - started
     for row in rows:
@@ -80,6 +80,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="CSV of every sample")
     parser.add_argument("--paper-scale", action="store_true", help="the scene's own 3.2 km domain and spacing")
     parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--scene", default="growing", help="a cloud scene (growing, cumulus, shallow_cumulus, ..)")
     parser.add_argument("--spacing", type=float, default=None, help="particle spacing = grid cell, m (default: the box's)")
     args = parser.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -89,13 +90,13 @@ def main(argv=None) -> int:
     rows = []
     for variant in variants:
         for seed in (int(s) for s in args.seeds.split(",")):
-            rows += run(variant, seed, args.duration, args.paper_scale, args.backend, args.spacing)
+            rows += run(variant, seed, args.duration, args.paper_scale, args.backend, args.spacing, args.scene)
             print(f"{variant} seed {seed}: LWP {rows[-1]['lwp_mean']:.3f} kg/m^2 at {args.duration:g} s", flush=True)
             if args.out:                 # after every run: a run cut by a time limit keeps the rows before it
                 save_frame(labelled(rows, args), args.out)
     frame = labelled(rows, args)
     late = frame[frame["time_s"] >= args.duration / 2]
-    print(late.groupby(["variant", "spacing_m"])[list(KEYS)].mean().to_string())
+    print(late.groupby(["scene", "variant", "spacing_m"])[list(KEYS)].mean().to_string())
     if args.out:
         save_frame(frame, args.out)
     return 0
