@@ -146,10 +146,12 @@ def gravity_wave(modes_x, modes_y, periods, dt=5.0, steepness=None, backend="cpu
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("modes", [(1, 1), (2, 1), (1, 2)])
+@pytest.mark.parametrize("modes", [(2, 1), (1, 2)])
 def test_linear_gravity_wave_keeps_its_energy_and_frequency_over_two_periods(modes, backend):
     # A linear wave (steepness |k| zeta = 0.1) at dt = 2.5 s (N dt = 0.026): kinetic + available potential
-    # energy within 5% of its start over two periods and the period of linear theory within 3%. Measured
+    # energy within 5% of its start over two periods and the period of linear theory within 3%; mode (1, 1)
+    # is the steep test's below, which holds its period and its energy at the same dt and three times the
+    # steepness (the (1, 1) linear wave's numbers are kept here for comparison). Measured
     # (50 m), lowest energy and period / theory for modes (1, 1), (2, 1), (1, 2): CPU 0.976, 0.989, 0.988 and
     # 0.975, 0.985, 0.994; H100 0.978, 0.989, 0.989 and 0.977, 0.982, 1.000. At the scene's dt = 5 s the
     # loss doubles: 0.956, 0.973, 0.971 (CPU), 0.946, 0.972, 0.963 (H100): first order in dt, see below.

@@ -652,16 +652,28 @@ def test_peer_section_gives_the_ratio_per_thread_count(full_report):
     assert ">GPU<" in sec                                            # threads 0: the GPU row
 
 
+def _compare_page(out):
+    """OUT/index.html with the compare section alone (the page's summary and environment around it)."""
+    import dataclasses
+
+    from cloudpbf.report import build
+    from cloudpbf.studies.page import catalogue
+    whole = catalogue()
+    return build.build_report(out, dataclasses.replace(
+        whole, sections=tuple(s for s in whole.sections if s.id == "compare"), cards=()))
+
+
 def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there(tmp_path, full_report):
     import shutil
     out = tmp_path / "study"
     shutil.copytree(full_report[0] / "data", out / "data")
-    before = _sections(build_report(out).read_text())["compare"]
+    before = _sections(_compare_page(out).read_text())["compare"]
+    assert before == _sections(full_report[1])["compare"]         # the section alone is the section of the page
     rows = [{"solver": m, "method": m, "parameter": p, "resolution_m": r, "stable": True, "cover_mean": 0.6,
              "lwp_mean": 0.3, "cloud_base_mean": 1100.0, "cloud_top_mean": 2700.0, "device": DEVICE, "commit": COMMIT}
             for m, p in (("particles", "spacing"), ("grid", "cells")) for r in (68.0, 54.0, 34.0)]
     pd.DataFrame(rows).to_csv(out / "data" / "convergence.csv", index=False)
-    after = _sections(build_report(out).read_text())["compare"]
+    after = _sections(_compare_page(out).read_text())["compare"]
     assert after.count("<img") == before.count("<img") + 1
     assert "Convergence in the full domain (convergence.csv" in after and COMMIT[:7] in after
     assert "Order of convergence" in after and "flat: no change with h" in after      # flat series: no order
@@ -674,7 +686,7 @@ def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there
     means = frame.groupby(["solver", "method", "parameter", "resolution_m", "stable", "device", "commit"],
                           as_index=False)["cover_mean"].mean().assign(seed="mean")
     pd.concat([frame, means]).to_csv(out / "data" / "convergence.csv", index=False)
-    seeded = _sections(build_report(out).read_text())["compare"]
+    seeded = _sections(_compare_page(out).read_text())["compare"]
     assert "mean over 3 seeds" in seeded and "bootstrap, 3 seeds" in seeded
     assert "<td>2 [2, 2]</td>" in seeded                                  # p = 2 exactly: the interval closes on it
 

@@ -1,5 +1,6 @@
 """The shallow-cumulus study (cloudpbf.studies.shallow_cumulus): its metrics on a synthetic run (closed forms),
-its comparison with the LES cases, and the whole study at the smoke scale."""
+its comparison with the LES cases. The whole study at the smoke scale runs in the smoke demo's test
+(tests/test_harness_demo.py), which checks its tables and renders."""
 from __future__ import annotations
 
 import math
@@ -11,8 +12,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cloudpbf.studies import shallow_cumulus as sc
-from cloudpbf.studies.context import INLINE, StudyContext
-from cloudpbf.studies.scales import SCALES
 from pbf_cuda import load_scene
 
 
@@ -80,17 +79,3 @@ def test_the_scene_is_growing_under_an_inversion_above_its_cloud_base():
     q = a.initial_vapor_ratio * float(scene.saturation(a.ground_temperature))
     lcl = float(scene.lifting_condensation_level(a.ground_temperature, q))
     assert lcl < a.inversion_height < scene.domain.size[1] - a.inversion_depth
-
-
-def test_the_study_at_the_smoke_scale_writes_its_tables_and_renders_or_notes(tmp_path):
-    ctx = StudyContext(out=tmp_path / "out", scale=SCALES["smoke"], runs_root=tmp_path / "runs", scheduler=INLINE,
-                       backend="cpu", quiet=True)
-    frames = sc.run_shallow_cumulus(ctx)
-    summary = frames["shallow_cumulus"]
-    assert list(summary["seed"]) == [str(s) for s in range(SCALES["smoke"].shallow_seeds)] + ["mean"]
-    assert summary["stable"].all() and (summary["particles"] > 0).all()
-    for stem in ("shallow_cumulus", "shallow_cumulus_series", "shallow_cumulus_profile", "shallow_cumulus_les"):
-        assert (ctx.data / f"{stem}.csv").is_file()
-    for name in ("shallow_cumulus_volume", "shallow_cumulus_particles"):
-        png, note = ctx.data / "renders" / f"{name}.png", ctx.data / "renders" / f"{name}.unavailable.txt"
-        assert png.is_file() or note.is_file()
