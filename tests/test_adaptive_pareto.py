@@ -106,20 +106,27 @@ def test_render_configs_pick_the_best_variant_and_its_uniform_twins():
         "thermal-108m-L6", "uniform-68m", "uniform-34m"]
 
 
+@pytest.mark.parametrize("scene_name", ap.SCENES)
 @pytest.mark.parametrize("scale", ["smoke", "cpu"])   # (a "gpu" id would mark it a GPU test)
-def test_every_variant_runs_the_scene_it_names(scale):
-    """Each adaptive configuration's scene carries its criterion, finest level and scaled eq. 20 thresholds;
-    names are unique, and uniform and reference runs are the plain scene at their spacing."""
+def test_every_variant_runs_the_scene_it_names(scale, scene_name):
+    """Each adaptive configuration's scene is the study scene's adaptive twin with its criterion, finest level
+    and scaled eq. 20 thresholds; names are unique, and uniform and reference runs are the plain scene at their
+    spacing."""
     configs = ap.configs(scale)
     assert len({c.name for c in configs}) == len(configs)
     f = ap.SPACING_FACTOR[scale]
+    plain = ap.load_scene(scene_name)
     for config in configs:
-        scene = ap.scene_for(config, "cumulus", 1.0)
+        scene = ap.scene_for(config, scene_name, 1.0)
         assert scene.particles.spacing == pytest.approx(config.spacing_m)
         assert scene.adaptive.enabled == (config.kind == "adaptive")
+        for field in ("lapse_rate", "inversion_height", "inversion_strength", "heating_patch_radius", "noise_frequency"):
+            assert getattr(scene.atmosphere, field) == getattr(plain.atmosphere, field), field   # the regime's own air
         if config.kind != "adaptive":
+            assert scene.name == scene_name
             continue
-        base = ap.load_scene("cumulus_adaptive").adaptive
+        assert scene.name == f"{scene_name}_adaptive"
+        base = ap.load_scene(f"{scene_name}_adaptive").adaptive
         assert (scene.adaptive.criterion, scene.adaptive.max_level) == (config.criterion, config.max_level)
         assert scene.adaptive.split_threshold == pytest.approx(base.split_threshold * config.threshold_scale)
         assert scene.adaptive.merge_threshold == pytest.approx(base.merge_threshold * config.threshold_scale)
@@ -406,3 +413,27 @@ def test_from_data_refuses_a_damaged_series_file_naming_it(tmp_path, damage):
     import re
     assert "adaptive_pareto_series.csv" in re.sub(r"[\s│╭╮╰╯─]+", "", result.output)   # the error box wraps it
     assert not (data / "adaptive_verdict.json").exists()
+
+
+def test_the_section_and_card_show_every_scene_with_a_verdict(tmp_path):
+    """Each scene's files (suffix _<scene> but for growing) give its own plot, table and line on the card."""
+    from cloudpbf.report.common import Inputs, Section
+    from cloudpbf.studies.adaptive_pareto.report import _adaptive_pareto, adaptive_front_card
+    data = tmp_path / "data"
+    data.mkdir()
+    per_run, per_config = _frame({"cheap-54m": 3, "ok-68m": 3})
+    for scene_name in ("growing", "shallow_cumulus"):
+        sfx = ap.file_suffix(scene_name)
+        verdict = ap.build_verdict(per_run, per_config, scene_name, "test", "abc")
+        configs = per_config.copy()
+        ap.add_verdict_columns(configs, verdict)
+        per_run.assign(device="d", commit="abc").to_csv(data / f"adaptive_pareto{sfx}.csv", index=False)
+        configs.to_csv(data / f"adaptive_pareto_configs{sfx}.csv", index=False)
+        (data / f"adaptive_verdict{sfx}.json").write_text(json.dumps(verdict))
+    sec = Section("adaptive_pareto", "Adaptive")
+    _adaptive_pareto(Inputs(tmp_path), sec, None)
+    captions = " ".join(str(b.caption or "") for b in sec.blocks if getattr(b, "caption", None))
+    assert "growing:" in captions and "shallow_cumulus:" in captions and "cumulus:" not in captions.replace(
+        "shallow_cumulus:", "")
+    card = adaptive_front_card(Inputs(tmp_path), None, {})
+    assert "growing:" in card.answer and "shallow_cumulus:" in card.answer

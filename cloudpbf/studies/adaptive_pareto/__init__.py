@@ -1,6 +1,7 @@
 """Adaptive against uniform particles: run time against error, seed means against an independent reference.
 
-For one cloud scene (``growing``, or ``cumulus``: one heated patch in a wide domain), the study runs
+For one cloud scene (``growing``; ``cumulus``: one heated patch in a wide domain; ``shallow_cumulus``: separate
+cumulus under an inversion), each with its adaptive twin ``<scene>_adaptive``, the study runs
 
 * uniform (non-adaptive) runs at four spacings, e.g. 68, 54, 43 and 34 m at the GPU scale,
 * every adaptive variant (refinement criterion ``paper`` = eq. 20 on the cloud water, ``lookahead`` = eq. 20
@@ -71,7 +72,7 @@ no speed-up (null) and the verdict says so.  The cost ratio is the median over t
 without running anything (device and commit are kept from
 the verdict file already there, else taken from the runs' CSV: they belong to the runs, not to the rebuild).
 
-    cloudpbf adaptive-pareto [--scene growing|cumulus] [--seeds 3] [--min-stable-seeds N] [--resamples 1000]
+    cloudpbf adaptive-pareto [--scene growing|cumulus|shallow_cumulus] [--seeds 3] [--min-stable-seeds N] [--resamples 1000]
                              [--scale gpu]
     cloudpbf adaptive-pareto --scene growing --from-data --out reports/gpu
 
@@ -103,8 +104,8 @@ from cloudpbf.studies.adaptive_pareto.analysis import (add_verdict_columns, alig
 from cloudpbf.studies.adaptive_pareto.design import (ADAPTIVE_SPACINGS, ANALYSIS_GRID, BOOTSTRAP_REPLICATES, CRITERIA,
                                                   DEFAULT_MAX_LEVEL, FURTHER_VARIANTS, GOAL_SPEEDUP,
                                                   MIN_STABLE_SEEDS, REFERENCE_SPACING, SCENES, SERIES,
-                                                  SPACING_FACTOR, UNIFORM_SPACINGS, Config, configs, finest_spacing,
-                                                  plan, scene_for, variant_name)  # noqa: F401
+                                                  SPACING_FACTOR, UNIFORM_SPACINGS, Config, configs, file_suffix,
+                                                  finest_spacing, plan, scene_for, variant_name)  # noqa: F401
 from cloudpbf.studies.context import StudyContext
 from cloudpbf.studies.adaptive_pareto.report import _adaptive_pareto, adaptive_front_card
 from cloudpbf.studies.registry import GlanceCard, ReportSection, Study, register
@@ -127,7 +128,7 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     sigs = [signature(r) for r in results]      # each run's CSVs read once, for the analysis and the series file
     per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds,
                                            replicates, sigs)
-    suffix = "" if scene_name == "growing" else f"_{scene_name}"
+    suffix = file_suffix(scene_name)
     series = series_frame([(config.name, seed) for config, seed, _ in entries], sigs)
     runs.write_csv(series, ctx.data / f"adaptive_pareto_series{suffix}.csv")
     runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")
@@ -205,7 +206,8 @@ def render_pareto_states(states_dir, out_dir, scene_name: str) -> list:
 
 
 def adaptive_pareto_command(
-    scene: Annotated[str, typer.Option(help="growing (the paper's example 1) or cumulus (one heated patch)")] = "growing",
+    scene: Annotated[str, typer.Option(help="growing (the paper's example 1), cumulus (one heated patch) or "
+                                            "shallow_cumulus (separate cumulus under an inversion)")] = "growing",
     seeds: Annotated[int, typer.Option(min=3, max=100, help="noise seeds per configuration (>= 3)")] = 3,
     min_stable_seeds: Annotated[Optional[int], typer.Option(
         "--min-stable-seeds", min=1, max=100,

@@ -13,12 +13,13 @@ from cloudpbf.report import plots
 from cloudpbf.report.common import Inputs, Section, _missing, _provenance, _table
 from cloudpbf.report.glance import RESAMPLED, Card, data_link, missing_card, ratio_words, resampled, section_link
 from cloudpbf.report.inference import median_spread
+from cloudpbf.studies.adaptive_pareto.design import SCENES, file_suffix
 
 
 def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
-    """Per scene (growing, cumulus): the Pareto plot, the configurations and the study's verdict."""
+    """Per scene (design.SCENES): the Pareto plot, the configurations and the study's verdict."""
     shown = False
-    for scene, suffix in (("growing", ""), ("cumulus", "_cumulus")):
+    for scene, suffix in ((s, file_suffix(s)) for s in SCENES):
         configs, _ = inp.csv(f"adaptive_pareto_configs{suffix}")
         verdict_path = inp.data / f"adaptive_verdict{suffix}.json"
         if configs is None or not verdict_path.is_file():
@@ -59,7 +60,7 @@ def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
 # ---- the verdict card -----------------------------------------------------------------------------
 def _pareto_card(inp: Inputs, card: Card, titles: dict) -> Card | None:
     parts, details, figure = [], [], None
-    for suffix in ("", "_cumulus"):
+    for suffix in (file_suffix(s) for s in SCENES):
         path = inp.data / f"adaptive_verdict{suffix}.json"
         if not path.is_file():
             continue
@@ -112,7 +113,7 @@ def _seed_ms(inp: Inputs, suffix: str, best: dict) -> str:
 
 
 def adaptive_front_card(inp: Inputs, env: dict | None, titles: dict) -> Card:
-    """The adaptive front from the study's verdicts (adaptive_verdict[_cumulus].json); where there is none, a card
+    """The adaptive front from the study's verdicts (adaptive_verdict[_<scene>].json); where there is none, a card
     saying so (the sweep's card stands in for it where the sweep ran, cloudpbf.studies.sweep)."""
     card = Card("adaptive_front", "The adaptive front: speed-up at equal error")
     found = _pareto_card(inp, card, titles)
