@@ -652,15 +652,20 @@ def test_peer_section_gives_the_ratio_per_thread_count(full_report):
     assert ">GPU<" in sec                                            # threads 0: the GPU row
 
 
-def _compare_page(out):
-    """OUT/index.html with the compare section alone (the page's summary and environment around it)."""
+def _section_page(out, section_id):
+    """OUT/index.html with one study section alone (the page's summary and environment around it): the
+    section as the whole page has it, in a fraction of the page's build time."""
     import dataclasses
 
     from cloudpbf.report import build
     from cloudpbf.studies.page import catalogue
     whole = catalogue()
     return build.build_report(out, dataclasses.replace(
-        whole, sections=tuple(s for s in whole.sections if s.id == "compare"), cards=()))
+        whole, sections=tuple(s for s in whole.sections if s.id == section_id), cards=()))
+
+
+def _compare_page(out):
+    return _section_page(out, "compare")
 
 
 def test_compare_section_draws_the_full_domain_convergence_when_its_csv_is_there(tmp_path, full_report):
@@ -705,7 +710,7 @@ def test_shallow_cumulus_section_sets_the_grid_beside_the_particles_of_the_same_
     pd.DataFrame([{"solver": "grid", "seed": "0", "cells": 94, "cover_mean": 0.10, "cloud_base_m": 1150.0},
                   {"solver": "grid", "seed": "mean", "cells": 94, "cover_mean": 0.10, "cloud_base_m": 1150.0}]
                  ).assign(device=DEVICE, commit=COMMIT).to_csv(out / "data" / "shallow_cumulus_grid.csv", index=False)
-    sec = _sections(build_report(out).read_text())["shallow_cumulus"]
+    sec = _sections(_section_page(out, "shallow_cumulus").read_text())["shallow_cumulus"]
     assert "particles (seeds 0)" in sec and "grid, 94³ cells (seeds 0)" in sec
     assert "<td>0.12</td>" in sec and "<td>0.1</td>" in sec      # seed 0's particle cover beside the grid's
 
@@ -723,13 +728,13 @@ def test_cycling_renders_are_one_side_by_side_figure_with_missing_cells_marked(t
     pd.DataFrame({"solver": ["particles", "particles"], "mode": ["non-adaptive", "adaptive"], "seed": [0, 0],
                   "cycles": [3, 2], "peak_cover": [0.6, 0.4], "min_cover": [0.0, 0.01], "device": DEVICE,
                   "commit": COMMIT}).to_csv(out / "data" / "cycling_cycles.csv", index=False)
-    before = _sections(build_report(out).read_text())["compare"].count("<img")
+    before = _sections(_compare_page(out).read_text())["compare"].count("<img")
     for name in ("cycling_non-adaptive_peak", "cycling_non-adaptive_min", "cycling_adaptive_peak"):
         fig, ax = plt.subplots(figsize=(4, 3))
         ax.imshow(np.random.default_rng(1).random((6, 8)))
         fig.savefig(out / "data" / "renders" / f"{name}.png")
         plt.close(fig)
-    compare = _sections(build_report(out).read_text())["compare"]
+    compare = _sections(_compare_page(out).read_text())["compare"]
     assert compare.count("<img") == before + 1 and "Fig. 5c/d" in compare
     uri = re.search(r'src="data:image/\w+;base64,([^"]+)"[^>]*>(?:(?!<img).)*Fig\. 5c/d', compare, re.S).group(1)
     from PIL import Image
