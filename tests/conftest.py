@@ -73,7 +73,6 @@ SLOW = {
         "test_analysis_writes_a_verdict_with_cost_ratio_and_speedup",                     # 7
         "test_analysis_leaves_out_a_variant_that_blew_up_in_two_seeds",                   # 6
     ),
-    "test_shallow_cumulus.py": ("test_the_study_at_the_smoke_scale_writes_its_tables_and_renders_or_notes",),  # 13
     # The grid baseline's tests (jax compiles each new shape): measured on the 2-core machine with other jobs
     # sharing its cores, one process (seconds inflated 2-3x); marked where they took 15 s or more.
     "test_grid_simulation.py": (

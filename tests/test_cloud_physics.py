@@ -221,7 +221,9 @@ def test_uniform_vapor_cloud_base_at_the_lcl(ground, rh):
     assert abs(base / lcl - 1.0) < 0.01, (base, lcl)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+# On the CUDA backend only: on the CPU backend the same wave (the scene's own, dt 5 s) is held to 3% of this
+# period, and its energy to first order in dt, by test_atmosphere_energy's steep gravity wave test.
+@pytest.mark.parametrize("backend", [pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_internal_gravity_wave_frequency(backend):
     scene = load_scene("stratified")
     a = scene.atmosphere
