@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from cloudpbf.studies import adaptive_pareto as ap
+from cloudpbf.studies.plans import scene_file_suffix
 
 
 def fake_result(time, cover, ms_per_step, particles, steps=100, pbf_share=0.5, seed_shift=0.0):
@@ -423,7 +424,7 @@ def test_the_section_and_card_show_every_scene_with_a_verdict(tmp_path):
     data.mkdir()
     per_run, per_config = _frame({"cheap-54m": 3, "ok-68m": 3})
     for scene_name in ("growing", "shallow_cumulus"):
-        sfx = ap.file_suffix(scene_name)
+        sfx = scene_file_suffix(scene_name)
         verdict = ap.build_verdict(per_run, per_config, scene_name, "test", "abc")
         configs = per_config.copy()
         ap.add_verdict_columns(configs, verdict)

@@ -22,6 +22,12 @@ SMOKE_CLOUD_BOX = {"domain.size": [1200.0, 1600.0, 1200.0], "time.dt": 4.0, "tim
 in a 1.2 x 1.6 x 1.2 km box that forms clouds within 480 s at dt = 4 s (docs/harness.md "Scales")."""
 
 
+def scene_file_suffix(scene_name: str) -> str:
+    """The suffix of a per-scene study's output files (adaptive-pareto, time-to-solution): none for ``growing``,
+    each study's first scene, ``_<scene>`` for the others."""
+    return "" if scene_name == "growing" else f"_{scene_name}"
+
+
 # ---- compare -------------------------------------------------------------------------------------------
 def scene_pair(name: str) -> tuple[Scene, Scene]:
     """(non-adaptive, adaptive) versions of a cloud scene.

@@ -104,9 +104,10 @@ from cloudpbf.studies.adaptive_pareto.analysis import (add_verdict_columns, alig
 from cloudpbf.studies.adaptive_pareto.design import (ADAPTIVE_SPACINGS, ANALYSIS_GRID, BOOTSTRAP_REPLICATES, CRITERIA,
                                                   DEFAULT_MAX_LEVEL, FURTHER_VARIANTS, GOAL_SPEEDUP,
                                                   MIN_STABLE_SEEDS, REFERENCE_SPACING, SCENES, SERIES,
-                                                  SPACING_FACTOR, UNIFORM_SPACINGS, Config, configs, file_suffix,
-                                                  finest_spacing, plan, scene_for, variant_name)  # noqa: F401
+                                                  SPACING_FACTOR, UNIFORM_SPACINGS, Config, configs, finest_spacing,
+                                                  plan, scene_for, variant_name)  # noqa: F401
 from cloudpbf.studies.context import StudyContext
+from cloudpbf.studies.plans import scene_file_suffix
 from cloudpbf.studies.adaptive_pareto.report import _adaptive_pareto, adaptive_front_card
 from cloudpbf.studies.registry import GlanceCard, ReportSection, Study, register
 from pbf_cuda.scene import load_scene
@@ -128,7 +129,7 @@ def run_adaptive_pareto(ctx: StudyContext, scene_name: str = "growing", seeds: i
     sigs = [signature(r) for r in results]      # each run's CSVs read once, for the analysis and the series file
     per_run, per_config, verdict = analyse(entries, results, scene_name, device, ctx.commit, min_stable_seeds,
                                            replicates, sigs)
-    suffix = file_suffix(scene_name)
+    suffix = scene_file_suffix(scene_name)
     series = series_frame([(config.name, seed) for config, seed, _ in entries], sigs)
     runs.write_csv(series, ctx.data / f"adaptive_pareto_series{suffix}.csv")
     runs.write_csv(per_run, ctx.data / f"adaptive_pareto{suffix}.csv")

@@ -16,6 +16,8 @@ from cloudpbf.pareto import pareto_front
 from cloudpbf.statistics import relative_l2
 from cloudpbf.studies.adaptive_pareto.design import (BOOTSTRAP_REPLICATES, DEFAULT_MAX_LEVEL, GOAL_SPEEDUP,
                                                   MIN_STABLE_SEEDS, SCENES, SERIES, Config)
+from cloudpbf.studies.plans import scene_file_suffix
+
 
 def _relative_l2(values, reference) -> float:
     """The relative L2 error over the samples finite in both (statistics.relative_l2)."""
@@ -526,7 +528,7 @@ def rebuild_verdict(data_dir, scene_name: str = "growing", min_stable_seeds: int
     if scene_name not in SCENES:
         raise ValueError(f"scene = {scene_name!r}: allowed {', '.join(SCENES)}")
     data_dir = Path(data_dir)
-    suffix = "" if scene_name == "growing" else f"_{scene_name}"
+    suffix = scene_file_suffix(scene_name)
     runs_path = data_dir / f"adaptive_pareto{suffix}.csv"
     configs_path = data_dir / f"adaptive_pareto_configs{suffix}.csv"
     for path in (runs_path, configs_path):

@@ -11,12 +11,7 @@ from pbf_cuda.scene import Scene, load_scene
 
 SCENES = ("growing", "cumulus", "shallow_cumulus")
 """The study's scenes; each has an adaptive twin ``<scene>_adaptive``. Files of a scene other than growing carry
-its name as a suffix (:func:`file_suffix`)."""
-
-
-def file_suffix(scene_name: str) -> str:
-    """The suffix of a scene's output files: none for growing (the first scene), ``_<scene>`` for the others."""
-    return "" if scene_name == "growing" else f"_{scene_name}"
+its name as a suffix (:func:`cloudpbf.studies.plans.scene_file_suffix`)."""
 CRITERIA = ("paper", "lookahead", "thermal", "heated")
 UNIFORM_SPACINGS = (68.0, 54.0, 43.0, 34.0)      # m at the GPU scale
 ADAPTIVE_SPACINGS = (68.0, 54.0)                 # level-0 spacing, m; max_level 3 halves it

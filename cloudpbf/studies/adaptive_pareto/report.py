@@ -13,13 +13,14 @@ from cloudpbf.report import plots
 from cloudpbf.report.common import Inputs, Section, _missing, _provenance, _table
 from cloudpbf.report.glance import RESAMPLED, Card, data_link, missing_card, ratio_words, resampled, section_link
 from cloudpbf.report.inference import median_spread
-from cloudpbf.studies.adaptive_pareto.design import SCENES, file_suffix
+from cloudpbf.studies.adaptive_pareto.design import SCENES
+from cloudpbf.studies.plans import scene_file_suffix
 
 
 def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
     """Per scene (design.SCENES): the Pareto plot, the configurations and the study's verdict."""
     shown = False
-    for scene, suffix in ((s, file_suffix(s)) for s in SCENES):
+    for scene, suffix in ((s, scene_file_suffix(s)) for s in SCENES):
         configs, _ = inp.csv(f"adaptive_pareto_configs{suffix}")
         verdict_path = inp.data / f"adaptive_verdict{suffix}.json"
         if configs is None or not verdict_path.is_file():
@@ -60,7 +61,7 @@ def _adaptive_pareto(inp: Inputs, sec: Section, env: dict | None) -> None:
 # ---- the verdict card -----------------------------------------------------------------------------
 def _pareto_card(inp: Inputs, card: Card, titles: dict) -> Card | None:
     parts, details, figure = [], [], None
-    for suffix in (file_suffix(s) for s in SCENES):
+    for suffix in (scene_file_suffix(s) for s in SCENES):
         path = inp.data / f"adaptive_verdict{suffix}.json"
         if not path.is_file():
             continue

@@ -47,6 +47,7 @@ import typer
 from cloudpbf import runs
 from cloudpbf.cli_common import (DEFAULT_OUT, Backend, BackendOpt, GpusOpt, OutOpt, QuietOpt, RunsRootOpt, ScaleName,
                               ScaleOpt, SchedulerOpt, WorkersOpt, refusals, study_context)
+from cloudpbf.studies.plans import scene_file_suffix
 from cloudpbf.studies.registry import GlanceCard, ReportSection, Study, register
 from cloudpbf.studies.time_to_solution.analysis import (BOOTSTRAP_REPLICATES, BUDGET_FACTORS, GOAL_SPEEDUP,  # noqa: F401
                                                      SERIES, analyse, build_verdict, cheapest)
@@ -296,12 +297,8 @@ def meta_frame(study: list[Setting]) -> pd.DataFrame:
     return pd.DataFrame([dataclasses.asdict(s) for s in study]).rename(columns={"name": "setting"})
 
 
-def suffix(scene_name: str) -> str:         # the growing scene's files have none
-    return "" if scene_name == "growing" else f"_{scene_name}"
-
-
 def write_outputs(data: Path, scene_name: str, per_setting, per_run, series, verdict) -> None:
-    sfx = suffix(scene_name)
+    sfx = scene_file_suffix(scene_name)
     runs.write_csv(per_setting, data / f"time_to_solution{sfx}.csv")
     runs.write_csv(per_run, data / f"time_to_solution_runs{sfx}.csv")
     runs.write_csv(series, data / f"time_to_solution_series{sfx}.csv")
@@ -343,7 +340,7 @@ def run_time_to_solution(ctx, scene_name: str = "growing", seeds: int = 8, repli
 
 def rebuild(data: Path, scene_name: str = "growing", replicates: int = BOOTSTRAP_REPLICATES) -> dict:
     """The verdict again from the study's CSVs in `data` (nothing run); device and commit those of the runs."""
-    sfx = suffix(scene_name)
+    sfx = scene_file_suffix(scene_name)
     paths = {k: Path(data) / f"time_to_solution{k}{sfx}.csv" for k in ("", "_runs", "_series")}
     for p in paths.values():
         if not p.is_file():

@@ -15,6 +15,7 @@ from cloudpbf.report import glance_plots as gp
 from cloudpbf.report import plots
 from cloudpbf.report.common import Inputs, Section, _provenance, _shown_path, _table
 from cloudpbf.report.glance import RESAMPLED, Card, data_link, ratio_words, resampled, section_link
+from cloudpbf.studies.plans import scene_file_suffix
 
 SCENES = ("growing", "cumulus", "cycling")
 GROUP_STYLE = {  # group -> (marker, colour, label)
@@ -27,7 +28,7 @@ LABELS = {"setting": "setting", "wall_per_sim_s": "wall s per simulated s", "err
 
 
 def _read(inp: Inputs, scene: str):
-    suffix = "" if scene == "growing" else f"_{scene}"
+    suffix = scene_file_suffix(scene)
     frame, _ = inp.csv(f"time_to_solution{suffix}")
     path = inp.data / f"time_to_solution_verdict{suffix}.json"
     verdict = None
@@ -133,7 +134,7 @@ def time_to_solution_card(inp: Inputs, env: dict | None, titles: dict) -> Card |
     card = Card("time_to_solution", "Time to solution at equal error")
     parts, figure = [], None
     for scene in SCENES:
-        sfx = "" if scene == "growing" else f"_{scene}"
+        sfx = scene_file_suffix(scene)
         path = inp.data / f"time_to_solution_verdict{sfx}.json"
         if not path.is_file():
             continue
