@@ -1,13 +1,15 @@
-"""What makes the particles' liquid water path exceed the grid's: `growing`
-in a 1.2 x 3.2 x 1.2 km column at 60 m (particle spacing and grid cells alike; 21,200 particles, minutes on a
-CPU core per run), particles with s_corr as the scene states it, at half its k and without it, with eq. 17's
-smoothing mixing cloud water as well as temperature and vapour (the scene mixes those two), and the grid
-baseline on the same scene, each seed's cover, mean LWP, cloud base and top every 100 s as the harness
-deposits and measures them (cloudpbf.statistics). The excess at paper scale is docs/validation.md's
-"Particles against the grid"; this box reproduces it on a CPU.
+"""What makes the particles' liquid water path exceed the grid's: a cloud scene (`growing` by default) in a
+1.2 x 3.2 x 1.2 km column at 60 m (particle spacing and grid cells alike; 21,200 particles, minutes on a CPU
+core per run) or in its own domain (--paper-scale, at any --spacing), each seed's cover, mean LWP, cloud base
+and top every 100 s as the harness deposits and measures them (cloudpbf.statistics), for these variants:
+the grid baseline on the same scene; the particles as the scene states them (`default`); s_corr at half its k
+and without it; eq. 17 mixing temperature and vapour but not cloud water (`cloud_unmixed`, the cloud scenes'
+default before 267231a: rows labelled `default` from earlier commits are this variant); eq. 17 mixing all three
+(`mix_all`, the default since) and the same at twice kappa. docs/validation.md, "What makes the LWP excess",
+has the measurements.
 
-Usage: python benchmarks/lwp_excess.py [--variants grid,default,scorr_half,scorr0,mix_all,mix_all_k2] [--seeds 0,1]
-                                       [--duration 1000] [--paper-scale] [--scene NAME] [--spacing M] [--backend cpu|cuda]
+Usage: python benchmarks/lwp_excess.py [--variants grid,default,cloud_unmixed,...] [--seeds 0,1] [--duration 1000]
+                                       [--paper-scale] [--scene NAME] [--spacing M] [--backend cpu|cuda]
                                        [--out FILE.csv]
 """
 from __future__ import annotations
@@ -26,6 +28,7 @@ from pbf_cuda import Simulation, load_scene
 
 BOX = {"domain.size": [1200.0, 3200.0, 1200.0], "particles.spacing": 60.0}
 VARIANTS = {"grid": {}, "default": {}, "scorr_half": {"pbf.scorr_k": 0.05}, "scorr0": {"pbf.scorr_k": 0.0},
+            "cloud_unmixed": {"smoothing.fields": ["temperature", "vapor"]},
             "mix_all": {"smoothing.fields": ["temperature", "vapor", "cloud"]},
             "mix_all_k2": {"smoothing.fields": ["temperature", "vapor", "cloud"], "smoothing.kappa": 0.2}}
 SAMPLE_S = 100.0
@@ -56,8 +59,8 @@ def run(variant: str, seed: int, duration: float, paper_scale: bool = False, bac
             d = grid_diagnostics(fields, scene)
         else:
             d = particle_diagnostics(sim.state(), scene)
-        rows.append({"scene": scene_name, "variant": variant, "seed": seed, "time_s": (k + 1) * SAMPLE_S, "spacing_m": scene.particles.spacing,
-                     **{key: d.get(key) for key in KEYS}})
+        rows.append({"scene": scene_name, "variant": variant, "seed": seed, "time_s": (k + 1) * SAMPLE_S,
+                     "spacing_m": scene.particles.spacing, **{key: d.get(key) for key in KEYS}})
     wall = time.perf_counter() - started
     for row in rows:
         row["wall_s"] = wall
@@ -81,7 +84,8 @@ def main(argv=None) -> int:
     parser.add_argument("--paper-scale", action="store_true", help="the scene's own 3.2 km domain and spacing")
     parser.add_argument("--backend", default="cpu", choices=("cpu", "cuda"))
     parser.add_argument("--scene", default="growing", help="a cloud scene (growing, cumulus, shallow_cumulus, ..)")
-    parser.add_argument("--spacing", type=float, default=None, help="particle spacing = grid cell, m (default: the box's)")
+    parser.add_argument("--spacing", type=float, default=None,
+                        help="particle spacing = grid cell, m (default: the column's; the scene's with --paper-scale)")
     args = parser.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
