@@ -25,6 +25,7 @@ from cloudpbf.environment import commit, device_description
 from cloudpbf.statistics import grid_diagnostics, particle_diagnostics
 from cloudpbf.store.files import save_frame
 from pbf_cuda import Simulation, load_scene
+from pbf_cuda.scene import list_scenes
 
 BOX = {"domain.size": [1200.0, 3200.0, 1200.0], "particles.spacing": 60.0}
 VARIANTS = {"grid": {}, "default": {}, "scorr_half": {"pbf.scorr_k": 0.05}, "scorr0": {"pbf.scorr_k": 0.0},
@@ -91,6 +92,10 @@ def main(argv=None) -> int:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; allowed {', '.join(VARIANTS)}")
+    if args.spacing is not None and not args.spacing > 0.0:
+        parser.error(f"--spacing: {args.spacing}: expected a spacing in m above 0")
+    if args.scene not in list_scenes():
+        parser.error(f"--scene: unknown {args.scene!r}; shipped scenes: {', '.join(list_scenes())}")
     rows = []
     for variant in variants:
         for seed in (int(s) for s in args.seeds.split(",")):
